@@ -1,0 +1,47 @@
+"""mbcal — model-based measurement and calibration.
+
+Describe an environment in mbcal's model language (.mdl), predict what sensors measure in
+it, and estimate any parameter the measurements can observe.  The public API:
+
+>>> import mbcal
+>>> model = mbcal.load_model("models/teleexistence.mdl")          # doctest: +SKIP
+>>> scene = mbcal.modeler(model, {"lever.angle": 0.5})             # doctest: +SKIP
+>>> scene.point("room.valve.lever.tip")                             # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+from importlib import import_module
+from typing import Any
+
+__version__ = "0.1.0"
+
+# Public names → the module that defines them.  Loaded on first use so that `mbcal check`
+# does not pay for importing JAX.
+_EXPORTS = {
+    "load_model": "mbcal.language",
+    "load_model_text": "mbcal.language",
+    "Model": "mbcal.language.model",
+    "modeler": "mbcal.modeler",
+    "parameter_vector": "mbcal.modeler",
+    "Scene": "mbcal.scene",
+    "ParameterSet": "mbcal.params",
+    "MbcalError": "mbcal.errors",
+    "MdlError": "mbcal.errors",
+    "ParameterError": "mbcal.errors",
+}
+
+__all__ = [*_EXPORTS, "__version__"]
+
+
+def __getattr__(name: str) -> Any:
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'mbcal' has no attribute '{name}'")
+    value = getattr(import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)

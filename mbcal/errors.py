@@ -1,0 +1,185 @@
+"""One error hierarchy for everything a user can get wrong.
+
+Every error a user can cause is an :class:`MbcalError`.  Errors that point into a file carry
+a :class:`SourceSpan`; ``str(error)`` is then ``path:line:col: message`` and
+:meth:`MbcalError.render` adds the offending source line with a caret under the column.
+The command line prints ``render()`` and exits with status 2 — never a traceback.
+"""
+
+from __future__ import annotations
+
+import difflib
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+__all__ = [
+    "SourceSpan",
+    "MbcalError",
+    "MdlError",
+    "MdlSyntaxError",
+    "UndefinedNameError",
+    "DuplicateNameError",
+    "IncludeError",
+    "UnitError",
+    "MdlTypeError",
+    "ArgumentError",
+    "DimensionError",
+    "MeshError",
+    "ParameterError",
+    "UnknownNameError",
+    "MeasurementFileError",
+    "SolverError",
+    "suggest",
+    "remember_source",
+]
+
+# Text of every file the parser has read, so an error can show its line even when the file
+# changed on disk afterwards (or never existed, as for strings parsed in tests).
+_SOURCES: dict[str, str] = {}
+
+
+def remember_source(path: str, text: str) -> None:
+    """Keep ``text`` as the content of ``path`` for error messages."""
+    _SOURCES[path] = text
+
+
+def _source_line(path: str, line: int) -> str | None:
+    text = _SOURCES.get(path)
+    if text is None:
+        try:
+            text = Path(path).read_text(encoding="utf-8", errors="replace")
+        except OSError:
+            return None
+    lines = text.splitlines()
+    if 1 <= line <= len(lines):
+        return lines[line - 1]
+    return None
+
+
+@dataclass(frozen=True)
+class SourceSpan:
+    """Where something stands in a source file (1-based line and column)."""
+
+    path: str
+    line: int
+    column: int
+    end_line: int | None = None
+    end_column: int | None = None
+
+    def __str__(self) -> str:
+        return f"{self.path}:{self.line}:{self.column}"
+
+
+class MbcalError(Exception):
+    """Base of every error a user of mbcal can cause.
+
+    Parameters
+    ----------
+    message : str
+        What is wrong, in the user's terms.
+    span : SourceSpan, optional
+        Where it is wrong.
+    hint : str, optional
+        What would fix it; printed on a line of its own.
+    """
+
+    exit_code = 2
+
+    def __init__(self, message: str, span: SourceSpan | None = None, hint: str | None = None):
+        self.message = message
+        self.span = span
+        self.hint = hint
+        super().__init__(str(self))
+
+    def __str__(self) -> str:
+        text = f"{self.span}: {self.message}" if self.span else self.message
+        if self.hint:
+            text += f" ({self.hint})"
+        return text
+
+    def render(self) -> str:
+        """The message, the source line and a caret under the column, for a terminal."""
+        head = f"{self.span}: {self.message}" if self.span else self.message
+        lines = [head]
+        if self.span is not None:
+            source = _source_line(self.span.path, self.span.line)
+            if source is not None:
+                source = source.replace("\t", " ")
+                lines.append(f"    {source}")
+                width = 1
+                if self.span.end_line == self.span.line and self.span.end_column:
+                    width = max(1, self.span.end_column - self.span.column)
+                lines.append("    " + " " * (self.span.column - 1) + "^" * min(width, 60))
+        if self.hint:
+            lines.append(f"hint: {self.hint}")
+        return "\n".join(lines)
+
+
+class MdlError(MbcalError):
+    """An error in a model description (.mdl or .urdf)."""
+
+
+class MdlSyntaxError(MdlError):
+    """The text does not follow the grammar."""
+
+
+class UndefinedNameError(MdlError):
+    """A name is used that nothing declares."""
+
+
+class DuplicateNameError(MdlError):
+    """The same name is declared twice in one scope."""
+
+
+class IncludeError(MdlError):
+    """An include is missing, unreadable, or part of a cycle."""
+
+
+class UnitError(MdlError):
+    """A quantity has the wrong unit (an angle where a length is expected, ...)."""
+
+
+class MdlTypeError(MdlError):
+    """A value has the wrong shape (a vector where a number is expected, ...)."""
+
+
+class ArgumentError(MdlError):
+    """A call has too many, too few or unknown arguments."""
+
+
+class DimensionError(MdlError):
+    """A shape dimension is negative or otherwise impossible."""
+
+
+class MeshError(MdlError):
+    """A mesh file is missing, empty or unreadable."""
+
+
+class ParameterError(MbcalError):
+    """A parameter selection or value names something the model does not have."""
+
+
+class UnknownNameError(ParameterError):
+    """A frame, point, sensor or shape name that the model does not have (or that is ambiguous)."""
+
+
+class MeasurementFileError(MbcalError):
+    """A measurement or plan file is malformed."""
+
+
+class SolverError(MbcalError):
+    """A problem cannot be set up for the solver (e.g. no unknowns)."""
+
+
+def suggest(name: str, candidates: Iterable[str], n: int = 3) -> str | None:
+    """A ``did you mean ...?`` hint listing close matches of ``name``, or None."""
+    pool = sorted(set(candidates))
+    close = difflib.get_close_matches(name, pool, n=n, cutoff=0.6)
+    if not close:
+        # Also match on the last dotted component: 'lever.tpi' vs 'room.lever.tip'.
+        tail = name.rsplit(".", 1)[-1]
+        close = [c for c in pool if c.rsplit(".", 1)[-1] == tail][:n]
+    if not close:
+        return None
+    return "did you mean " + ", ".join(f"'{c}'" for c in close) + "?"

@@ -1,0 +1,70 @@
+"""Writing files without losing anything.
+
+Every file mbcal writes goes through :func:`atomic_write`: the data goes to a temporary file
+in the target's folder, is flushed to disk, and then renamed over the target in one step, so a
+crash or Ctrl-C leaves either the old file or the complete new one — never a partial file.
+Inputs are protected: :func:`check_output` refuses to write over a file the command reads.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+
+from mbcal.errors import MbcalError
+
+__all__ = ["atomic_write", "atomic_writer", "check_output", "OutputError"]
+
+
+class OutputError(MbcalError):
+    """An output cannot be written (it would overwrite an input, its folder is missing, ...)."""
+
+
+def check_output(path: str | os.PathLike[str], inputs: Iterable[str | os.PathLike[str]] = (),
+                 *, overwrite: bool = True) -> Path:
+    """Validate an output path before any work is done.
+
+    Raises
+    ------
+    OutputError
+        The path is one of ``inputs`` (mbcal never overwrites its input), its folder does not
+        exist, it is a folder, or it exists and ``overwrite`` is False.
+    """
+    out = Path(path)
+    resolved = out.resolve()
+    for item in inputs:
+        if Path(item).resolve() == resolved:
+            raise OutputError(f"refusing to overwrite the input file {item}", hint="choose another output name")
+    if out.is_dir():
+        raise OutputError(f"{out} is a folder; give a file name")
+    if not resolved.parent.is_dir():
+        raise OutputError(f"cannot write {out}: folder {out.parent} does not exist")
+    if out.exists() and not overwrite:
+        raise OutputError(f"{out} exists; pass --force to replace it")
+    return out
+
+
+@contextlib.contextmanager
+def atomic_writer(path: str | os.PathLike[str], mode: str = "wb") -> Iterator:
+    """Open a temporary file that replaces ``path`` only when the block finishes without error."""
+    target = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part", dir=target.resolve().parent)
+    try:
+        with os.fdopen(fd, mode, **({} if "b" in mode else {"encoding": "utf-8", "newline": ""})) as handle:
+            yield handle
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp, target)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_write(path: str | os.PathLike[str], data: bytes | str) -> None:
+    """Write ``data`` to ``path`` atomically (text is written as UTF-8)."""
+    with atomic_writer(path, "wb") as handle:
+        handle.write(data.encode("utf-8") if isinstance(data, str) else data)

@@ -1,0 +1,314 @@
+"""The checked model description D: parameters, frames, points, sensors and shapes.
+
+A :class:`Model` is what :func:`mbcal.load_model` returns.  It is immutable once built and
+is hashed by identity, so it can be a static argument of jitted functions.  Expressions are
+held as :mod:`mbcal.language.ir` graphs; :func:`mbcal.modeler.modeler` evaluates them.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mbcal.errors import ParameterError, SourceSpan, UnknownNameError, suggest
+from mbcal.language.ir import Node
+from mbcal.units import Dim, describe
+
+__all__ = [
+    "ParamInfo",
+    "JointInfo",
+    "FrameInfo",
+    "PointInfo",
+    "CameraInfo",
+    "RangeInfo",
+    "ShapeInfo",
+    "MeshData",
+    "Model",
+    "SHAPE_KINDS",
+]
+
+# Shape kind → names of its dimensions, in the order of ShapeInfo.dims.
+SHAPE_KINDS: dict[str, tuple[str, ...]] = {
+    "box": ("sx", "sy", "sz"),
+    "cylinder": ("radius", "length"),
+    "cone": ("radius", "length"),
+    "sphere": ("radius",),
+    "tube": ("outer", "inner", "length"),
+    "rectangle": ("sx", "sy"),
+    "plane": (),
+    "mesh": ("sx", "sy", "sz"),  # scale factors
+}
+
+
+@dataclass(frozen=True, eq=False)
+class ParamInfo:
+    """A declared parameter.
+
+    Attributes
+    ----------
+    name : str
+        Full dotted name (``room.x``); templates and frames prefix the names declared in them.
+    index : int
+        Position in the model's parameter vector X.
+    nominal : float
+        Nominal (design) value in SI units.
+    lower, upper : float or None
+        Search range for random initial values.
+    sigma : float or None
+        Prior standard deviation around ``nominal`` (a soft constraint when estimated).
+    per_configuration : bool
+        Each configuration of a measurement set has its own copy.
+    dim : Dim or None
+        Physical dimension (None: given without a unit).
+    """
+
+    name: str
+    index: int
+    nominal: float
+    lower: float | None
+    upper: float | None
+    sigma: float | None
+    per_configuration: bool
+    dim: Dim | None
+    span: SourceSpan | None = field(default=None, repr=False)
+
+    @property
+    def unit(self) -> str:
+        """The unit values are shown in: ``m``, ``deg`` or empty."""
+        if self.dim == Dim(1, 0):
+            return "m"
+        if self.dim == Dim(0, 1):
+            return "deg"
+        return ""
+
+    def display(self, value: float) -> float:
+        """``value`` (SI) in the display unit (degrees for angles)."""
+        return float(np.degrees(value)) if self.unit == "deg" else float(value)
+
+    def from_display(self, value: float) -> float:
+        """A display-unit value back to SI."""
+        return float(np.radians(value)) if self.unit == "deg" else float(value)
+
+    def describe(self) -> str:
+        return describe(self.dim)
+
+
+@dataclass(frozen=True, eq=False)
+class JointInfo:
+    """A joint moving its frame relative to the frame's ``at`` pose."""
+
+    kind: str  # revolute | prismatic
+    axis: Node  # unit 3-vector in the frame
+    q: Node
+    offset: Node | None
+    lower: float | None
+    upper: float | None
+    span: SourceSpan | None = field(default=None, repr=False)
+
+
+@dataclass(frozen=True, eq=False)
+class FrameInfo:
+    """A coordinate frame: an object, a link, a sensor or a target."""
+
+    name: str
+    parent: int  # index into Model.frames, -1 for the world
+    pose: Node | None  # T_parent_frame before the joint; None is the identity
+    joint: JointInfo | None
+    keyword: str
+    span: SourceSpan | None = field(default=None, repr=False)
+
+
+@dataclass(frozen=True, eq=False)
+class PointInfo:
+    """A named point, fixed in its frame."""
+
+    name: str
+    frame: int
+    position: Node  # (3,) in the frame
+    span: SourceSpan | None = field(default=None, repr=False)
+
+
+@dataclass(frozen=True, eq=False)
+class CameraInfo:
+    """A pinhole camera with OpenCV's axes (x right, y down, z forward) and distortion model."""
+
+    name: str
+    frame: int  # the camera's own frame
+    width: int
+    height: int
+    intrinsics: tuple[Node, Node, Node, Node, Node]  # fx, fy, cx, cy, skew (pixels)
+    distortion: tuple[Node, Node, Node, Node, Node]  # k1, k2, p1, p2, k3 (OpenCV order)
+    span: SourceSpan | None = field(default=None, repr=False)
+
+
+@dataclass(frozen=True, eq=False)
+class RangeInfo:
+    """A range sensor: rays from its frame's origin along fixed directions."""
+
+    name: str
+    frame: int
+    directions: np.ndarray  # (n, 3) unit vectors in the sensor frame
+    max_range: float
+    span: SourceSpan | None = field(default=None, repr=False)
+
+
+@dataclass(frozen=True, eq=False)
+class MeshData:
+    """Triangles of a mesh file, in the file's own units (before ``scale``)."""
+
+    path: str
+    vertices: np.ndarray  # (v, 3)
+    faces: np.ndarray  # (f, 3) int
+
+
+@dataclass(frozen=True, eq=False)
+class ShapeInfo:
+    """A solid or surface attached to a frame; every primitive is centred on its origin."""
+
+    name: str
+    frame: int
+    kind: str
+    dims: tuple[Node, ...]  # see SHAPE_KINDS
+    pose: Node | None  # T_frame_shape
+    mesh: MeshData | None = None
+    span: SourceSpan | None = field(default=None, repr=False)
+
+
+@dataclass(frozen=True, eq=False)
+class Model:
+    """A checked model description (D in the seed paper).
+
+    Build one with :func:`mbcal.load_model` or :func:`mbcal.load_model_text`.
+    """
+
+    path: str
+    params: tuple[ParamInfo, ...]
+    frames: tuple[FrameInfo, ...]
+    points: tuple[PointInfo, ...]
+    cameras: tuple[CameraInfo, ...]
+    ranges: tuple[RangeInfo, ...]
+    shapes: tuple[ShapeInfo, ...]
+    measures: tuple[str, ...] = ()
+    templates: tuple[str, ...] = ()
+    files: tuple[str, ...] = ()
+    warnings: tuple[str, ...] = ()
+    _index: dict[str, dict[str, int]] = field(default_factory=dict, repr=False)
+    _suffixes: dict[str, dict[str, list[str]]] = field(default_factory=dict, repr=False)
+
+    def __post_init__(self) -> None:
+        index = {
+            "param": {p.name: i for i, p in enumerate(self.params)},
+            "frame": {f.name: i for i, f in enumerate(self.frames)},
+            "point": {p.name: i for i, p in enumerate(self.points)},
+            "camera": {c.name: i for i, c in enumerate(self.cameras)},
+            "range": {r.name: i for i, r in enumerate(self.ranges)},
+            "shape": {s.name: i for i, s in enumerate(self.shapes)},
+        }
+        object.__setattr__(self, "_index", index)
+
+    # ---- look-ups by name --------------------------------------------------------------------
+
+    def _lookup(self, what: str, name: str) -> int:
+        table = self._index[what]
+        if name in table:
+            return table[name]
+        if what != "param":
+            matches = self._suffix_table(what).get(name, [])
+            if len(matches) == 1:
+                return table[matches[0]]
+            if len(matches) > 1:
+                shown = ", ".join(f"'{m}'" for m in matches[:5]) + (", ..." if len(matches) > 5 else "")
+                raise UnknownNameError(f"'{name}' is ambiguous: it could be the {what} {shown}",
+                                       hint="give more of the dotted path")
+        hint = suggest(name, table)
+        available = "" if hint else f" (the model has {len(table)} {what}s)"
+        error = ParameterError if what == "param" else UnknownNameError
+        raise error(f"the model has no {what} named '{name}'{available}", hint=hint)
+
+    def _suffix_table(self, what: str) -> dict[str, list[str]]:
+        """Every dotted suffix of every name (``hand.tip`` for ``base.arm.hand.tip``)."""
+        if what not in self._suffixes:
+            table: dict[str, list[str]] = {}
+            for full in self._index[what]:
+                parts = full.split(".")
+                for k in range(1, len(parts)):
+                    table.setdefault(".".join(parts[k:]), []).append(full)
+            self._suffixes[what] = table
+        return self._suffixes[what]
+
+    def resolve(self, what: str, name: str) -> str:
+        """The full name of a frame, point, camera, range sensor or shape given by a unique suffix."""
+        if what == "frame" and name == "world":
+            return name
+        return self.names(what)[self._lookup(what, name)]
+
+    def param_index(self, name: str) -> int:
+        """Position of a parameter in X; a :class:`ParameterError` with suggestions if unknown."""
+        return self._lookup("param", name)
+
+    def frame_index(self, name: str) -> int:
+        """Position of a frame (full name or unique dotted suffix); ``world`` is -1."""
+        if name == "world":
+            return -1
+        return self._lookup("frame", name)
+
+    def point_index(self, name: str) -> int:
+        return self._lookup("point", name)
+
+    def camera_index(self, name: str) -> int:
+        return self._lookup("camera", name)
+
+    def range_index(self, name: str) -> int:
+        return self._lookup("range", name)
+
+    def shape_index(self, name: str) -> int:
+        return self._lookup("shape", name)
+
+    def param(self, name: str) -> ParamInfo:
+        return self.params[self.param_index(name)]
+
+    def has(self, what: str, name: str) -> bool:
+        return name in self._index[what]
+
+    def names(self, what: str) -> list[str]:
+        """All names of one kind: ``param``, ``frame``, ``point``, ``camera``, ``range``, ``shape``."""
+        return list(self._index[what])
+
+    def match_params(self, pattern: str) -> list[str]:
+        """Parameter names matching a name or a glob pattern (``room.*``)."""
+        if pattern in self._index["param"]:
+            return [pattern]
+        return [p.name for p in self.params if fnmatch.fnmatchcase(p.name, pattern)]
+
+    def shapes_of(self, frame: str, *, recursive: bool = True) -> list[int]:
+        """Indices of the shapes attached to ``frame`` (and, by default, to its descendants)."""
+        root = self.frame_index(frame)
+        out = []
+        for i, s in enumerate(self.shapes):
+            f = s.frame
+            while f >= 0:
+                if f == root:
+                    out.append(i)
+                    break
+                if not recursive:
+                    break
+                f = self.frames[f].parent
+        return out
+
+    @property
+    def nominal(self) -> np.ndarray:
+        """The nominal parameter vector X (SI units)."""
+        return np.array([p.nominal for p in self.params], dtype=float)
+
+    @property
+    def per_configuration(self) -> list[str]:
+        """Names of the parameters declared ``per configuration``."""
+        return [p.name for p in self.params if p.per_configuration]
+
+    def summary(self) -> str:
+        """A readable overview: parameters, frames, points, sensors, shapes."""
+        from mbcal.report import model_summary
+
+        return model_summary(self)

@@ -1,0 +1,498 @@
+"""Text → syntax tree: the Lark parser, its error messages, and ``include`` resolution."""
+
+from __future__ import annotations
+
+import functools
+import os
+from importlib import resources
+from pathlib import Path
+
+import lark
+from lark import Lark, Token, Transformer, v_args
+from lark.exceptions import UnexpectedCharacters, UnexpectedEOF, UnexpectedInput, UnexpectedToken, VisitError
+
+from mbcal.errors import IncludeError, MbcalError, MdlSyntaxError, SourceSpan, remember_source
+from mbcal.language import ast
+
+__all__ = ["grammar_path", "grammar_text", "parse_text", "parse_file", "MAX_INCLUDE_DEPTH"]
+
+MAX_INCLUDE_DEPTH = 32
+# Guard against pathological inputs (deep parentheses make Lark's and our own recursion deep).
+MAX_SOURCE_BYTES = 8 * 1024 * 1024
+MAX_NESTING = 200
+
+
+def grammar_path() -> Path:
+    """Where ``mdl.lark`` is: inside the installed package, else in the source checkout."""
+    packaged = resources.files("mbcal") / "grammar" / "mdl.lark"
+    if packaged.is_file():
+        return Path(str(packaged))
+    checkout = Path(__file__).resolve().parents[2] / "grammar" / "mdl.lark"
+    if checkout.is_file():
+        return checkout
+    raise RuntimeError(
+        "mbcal's grammar file mdl.lark is missing: looked in the package (mbcal/grammar/) and in "
+        f"the source checkout ({checkout}); reinstall mbcal"
+    )
+
+
+def grammar_text() -> str:
+    """The grammar, as mbcal uses it."""
+    return grammar_path().read_text(encoding="utf-8")
+
+
+@functools.lru_cache(maxsize=1)
+def _parser() -> Lark:
+    return Lark(grammar_text(), parser="lalr", lexer="contextual", propagate_positions=True, maybe_placeholders=True)
+
+
+# Readable names for terminals in "expected ..." messages.
+_TERMINAL_NAMES = {
+    "NAME": "a name",
+    "NUMBER": "a number",
+    "STRING": "a string",
+    "UNIT": "a unit",
+    "FRAME_KEYWORD": "'frame'/'object'/'link'",
+    "LPAR": "'('",
+    "RPAR": "')'",
+    "LSQB": "'['",
+    "RSQB": "']'",
+    "LBRACE": "'{'",
+    "RBRACE": "'}'",
+    "COMMA": "','",
+    "EQUAL": "'='",
+    "SEMICOLON": "';'",
+    "PLUS": "'+'",
+    "MINUS": "'-'",
+    "STAR": "'*'",
+    "SLASH": "'/'",
+    "CIRCUMFLEX": "'^'",
+    "$END": "end of file",
+}
+
+
+def _describe_terminal(name: str) -> str:
+    if name in _TERMINAL_NAMES:
+        return _TERMINAL_NAMES[name]
+    try:
+        pattern = _parser().get_terminal(name).pattern
+    except KeyError:
+        return name
+    if isinstance(pattern, lark.lexer.PatternStr):
+        return f"'{pattern.value}'"
+    return name.lower()
+
+
+def _expected(names: set[str] | frozenset[str]) -> str:
+    described = sorted({_describe_terminal(n) for n in names})
+    if len(described) > 8:
+        return ", ".join(described[:8]) + ", ..."
+    return ", ".join(described)
+
+
+def _syntax_error(err: UnexpectedInput, path: str, text: str) -> MdlSyntaxError:
+    line = getattr(err, "line", None) or 1
+    column = getattr(err, "column", None) or 1
+    if isinstance(err, UnexpectedCharacters):
+        char = text[err.pos_in_stream] if err.pos_in_stream < len(text) else ""
+        message = f"unexpected character {char!r}"
+        if err.allowed:
+            message += f"; expected {_expected(err.allowed)}"
+    elif isinstance(err, UnexpectedEOF):
+        lines = text.splitlines() or [""]
+        line, column = len(lines), len(lines[-1]) + 1
+        message = f"unexpected end of file; expected {_expected(set(err.expected))}"
+    elif isinstance(err, UnexpectedToken):
+        token = err.token
+        if token.type == "$END":
+            lines = text.splitlines() or [""]
+            line, column = len(lines), len(lines[-1]) + 1
+            message = "unexpected end of file"
+        else:
+            message = f"unexpected {_describe_token(token)}"
+        if err.expected:
+            message += f"; expected {_expected(err.expected)}"
+    else:  # pragma: no cover - Lark has no other UnexpectedInput subclasses today
+        message = str(err)
+    return MdlSyntaxError(message, SourceSpan(path, line, column, line, column + 1))
+
+
+def _describe_token(token: Token) -> str:
+    if token.type == "NAME":
+        return f"name '{token}'"
+    if token.type == "NUMBER":
+        return f"number {token}"
+    if token.type == "STRING":
+        return f"string {token}"
+    return f"'{token}'"
+
+
+class _ToAst(Transformer):
+    """Lark tree → :mod:`mbcal.language.ast` nodes."""
+
+    def __init__(self, path: str):
+        super().__init__()
+        self.path = path
+
+    def _span(self, meta) -> SourceSpan:
+        if getattr(meta, "empty", True):
+            return SourceSpan(self.path, 1, 1)
+        return SourceSpan(self.path, meta.line, meta.column, meta.end_line, meta.end_column)
+
+    def _tspan(self, token: Token) -> SourceSpan:
+        return SourceSpan(self.path, token.line, token.column, token.end_line, token.end_column)
+
+    # -- expressions
+    @v_args(meta=True)
+    def number(self, meta, children):
+        value, unit = children
+        return ast.Number(span=self._span(meta), value=float(value), unit=str(unit) if unit else None)
+
+    @v_args(meta=True)
+    def name(self, meta, children):
+        return ast.Name(span=self._span(meta), name=str(children[0]))
+
+    @v_args(meta=True)
+    def string(self, meta, children):
+        return ast.String(span=self._span(meta), value=_unquote(str(children[0])))
+
+    @v_args(meta=True)
+    def neg(self, meta, children):
+        return ast.Unary(span=self._span(meta), op="-", operand=children[0])
+
+    def _binary(op):  # noqa: N805 - a small factory used at class creation
+        @v_args(meta=True)
+        def method(self, meta, children):
+            return ast.Binary(span=self._span(meta), op=op, left=children[0], right=children[1])
+
+        return method
+
+    add = _binary("+")
+    sub = _binary("-")
+    mul = _binary("*")
+    div = _binary("/")
+    pow = _binary("^")
+
+    @v_args(meta=True)
+    def call(self, meta, children):
+        func, arguments = children
+        args, kwargs = arguments if arguments is not None else ((), ())
+        return ast.Call(span=self._span(meta), func=str(func), args=args, kwargs=kwargs)
+
+    @v_args(meta=True)
+    def vector(self, meta, children):
+        return ast.Vector(span=self._span(meta), items=tuple(c for c in children if c is not None))
+
+    @v_args(meta=True)
+    def list(self, meta, children):
+        return ast.List(span=self._span(meta), items=tuple(c for c in children if c is not None))
+
+    @v_args(meta=True)
+    def keyword_argument(self, meta, children):
+        return ast.Keyword(name=str(children[0]), value=children[1], span=self._span(meta))
+
+    def arguments(self, children):
+        args: list[ast.Expr] = []
+        kwargs: list[ast.Keyword] = []
+        for child in children:
+            if child is None:
+                continue
+            if isinstance(child, ast.Keyword):
+                kwargs.append(child)
+            elif kwargs:
+                raise MdlSyntaxError("a positional argument cannot follow a keyword argument", child.span)
+            else:
+                args.append(child)
+        return tuple(args), tuple(kwargs)
+
+    # -- statements
+    @v_args(meta=True)
+    def include(self, meta, children):
+        return ast.Include(span=self._span(meta), path=_unquote(str(children[0])))
+
+    @v_args(meta=True)
+    def param(self, meta, children):
+        name, index_range, value, prange, sigma, per_config = children
+        lower, upper = prange if prange is not None else (None, None)
+        return ast.Param(
+            span=self._span(meta),
+            name_span=self._tspan(name),
+            name=str(name),
+            value=value,
+            index_range=index_range,
+            lower=lower,
+            upper=upper,
+            sigma=sigma,
+            per_configuration=per_config is not None,
+        )
+
+    @v_args(meta=True)
+    def index_range(self, meta, children):
+        first, last = children
+        span = self._span(meta)
+        for token in (first, last):
+            if not str(token).isdigit():
+                raise MdlSyntaxError(f"an index range needs whole numbers, got {token}", self._tspan(token))
+        lo, hi = int(first), int(last)
+        if hi < lo:
+            raise MdlSyntaxError(f"empty index range [{lo}..{hi}]", span)
+        if hi - lo >= 10000:
+            raise MdlSyntaxError(f"index range [{lo}..{hi}] is too long (at most 10000 entries)", span)
+        return (lo, hi)
+
+    def param_range(self, children):
+        return (children[0], children[1])
+
+    def param_sigma(self, children):
+        return children[0]
+
+    def per_config(self, children):
+        return True
+
+    @v_args(meta=True)
+    def let(self, meta, children):
+        return ast.Let(span=self._span(meta), name_span=self._tspan(children[0]), name=str(children[0]),
+                       value=children[1])
+
+    @v_args(meta=True)
+    def template_param(self, meta, children):
+        return ast.TemplateParam(name=str(children[0]), default=children[1], span=self._span(meta))
+
+    @v_args(meta=True)
+    def template(self, meta, children):
+        name, *rest = children
+        body = rest[-1]
+        params = tuple(p for p in rest[:-1] if p is not None)
+        return ast.Template(span=self._span(meta), name_span=self._tspan(name), name=str(name), params=params,
+                            body=body)
+
+    def block(self, children):
+        return tuple(c for c in children if isinstance(c, ast.Statement))
+
+    def pose(self, children):
+        return children[0]
+
+    @v_args(meta=True)
+    def frame(self, meta, children):
+        keyword, name, pose, body = children
+        return ast.Frame(span=self._span(meta), name_span=self._tspan(name), keyword=str(keyword), name=str(name),
+                         pose=pose, body=body or ())
+
+    @v_args(meta=True)
+    def instance(self, meta, children):
+        keyword, name, template, arguments, pose, body = children
+        args, kwargs = arguments if arguments is not None else ((), ())
+        return ast.Instance(
+            span=self._span(meta),
+            name_span=self._tspan(name),
+            keyword=str(keyword),
+            name=str(name),
+            template=str(template),
+            args=args,
+            kwargs=kwargs,
+            pose=pose,
+            body=body or (),
+            template_span=self._tspan(template),
+        )
+
+    @v_args(meta=True)
+    def shape(self, meta, children):
+        if len(children) == 4:
+            name, kind, arguments, pose = children
+        else:  # pragma: no cover - the grammar always yields the optional name slot
+            name, (kind, arguments, pose) = None, children
+        args, kwargs = arguments if arguments is not None else ((), ())
+        return ast.Shape(
+            span=self._span(meta),
+            name_span=self._tspan(name) if name is not None else None,
+            name=str(name) if name is not None else None,
+            kind=str(kind),
+            args=args,
+            kwargs=kwargs,
+            pose=pose,
+            kind_span=self._tspan(kind),
+        )
+
+    @v_args(meta=True)
+    def point(self, meta, children):
+        return ast.Point(span=self._span(meta), name_span=self._tspan(children[0]), name=str(children[0]),
+                         value=children[1])
+
+    def _call_statement(node_type):  # noqa: N805
+        @v_args(meta=True)
+        def method(self, meta, children):
+            name, arguments, *rest = children
+            args, kwargs = arguments if arguments is not None else ((), ())
+            extra = {"pose": rest[0]} if rest else {}
+            key = "kind" if node_type is ast.Joint else "name"
+            return node_type(span=self._span(meta), name_span=self._tspan(name), args=args, kwargs=kwargs,
+                             **{key: str(name)}, **extra)
+
+        return method
+
+    joint = _call_statement(ast.Joint)
+    camera = _call_statement(ast.Camera)
+    range_sensor = _call_statement(ast.RangeSensor)
+
+    @v_args(meta=True)
+    def target(self, meta, children):
+        name, kind, arguments, pose = children
+        args, kwargs = arguments if arguments is not None else ((), ())
+        return ast.Target(
+            span=self._span(meta),
+            name_span=self._tspan(name),
+            name=str(name),
+            kind=str(kind),
+            args=args,
+            kwargs=kwargs,
+            pose=pose,
+            kind_span=self._tspan(kind),
+        )
+
+    @v_args(meta=True)
+    def measure(self, meta, children):
+        return ast.Measure(
+            span=self._span(meta),
+            kinds=tuple(str(c) for c in children),
+            kind_spans=tuple(self._tspan(c) for c in children),
+        )
+
+    def start(self, children):
+        return tuple(c for c in children if isinstance(c, ast.Statement))
+
+
+def _unquote(text: str) -> str:
+    body = text[1:-1]
+    out: list[str] = []
+    i = 0
+    while i < len(body):
+        ch = body[i]
+        if ch == "\\" and i + 1 < len(body):
+            nxt = body[i + 1]
+            out.append({"n": "\n", "t": "\t", '"': '"', "\\": "\\"}.get(nxt, nxt))
+            i += 2
+        else:
+            out.append(ch)
+            i += 1
+    return "".join(out)
+
+
+def _check_nesting(text: str, path: str) -> None:
+    """Refuse absurdly deep nesting before Lark and our tree walkers recurse into it."""
+    depth = 0
+    line, col = 1, 0
+    for ch in text:
+        col += 1
+        if ch == "\n":
+            line, col = line + 1, 0
+        elif ch in "([{":
+            depth += 1
+            if depth > MAX_NESTING:
+                raise MdlSyntaxError(
+                    f"nesting deeper than {MAX_NESTING} levels of brackets", SourceSpan(path, line, col)
+                )
+        elif ch in ")]}":
+            depth = max(0, depth - 1)
+
+
+def parse_text(text: str, path: str = "<string>") -> tuple[ast.Statement, ...]:
+    """Parse model text into statements (includes are left unresolved).
+
+    Raises
+    ------
+    MdlSyntaxError
+        With the location of the first offending token.
+    """
+    remember_source(path, text)
+    if len(text.encode("utf-8", errors="replace")) > MAX_SOURCE_BYTES:
+        raise MdlSyntaxError(f"file is larger than {MAX_SOURCE_BYTES // (1024 * 1024)} MiB", SourceSpan(path, 1, 1))
+    if "\x00" in text:
+        line = text.count("\n", 0, text.index("\x00")) + 1
+        raise MdlSyntaxError("file contains a NUL byte (is it a binary file?)", SourceSpan(path, line, 1))
+    _check_nesting(text, path)
+    try:
+        tree = _parser().parse(text)
+    except UnexpectedInput as err:
+        raise _syntax_error(err, path, text) from None
+    try:
+        return _ToAst(path).transform(tree)
+    except VisitError as err:
+        if isinstance(err.orig_exc, MbcalError):
+            raise err.orig_exc from None
+        raise
+
+
+def _read_model_text(path: Path, span: SourceSpan | None) -> str:
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise IncludeError(f"file not found: {path}", span) from None
+    except IsADirectoryError:
+        raise IncludeError(f"{path} is a directory, not a model file", span) from None
+    except OSError as err:
+        raise IncludeError(f"cannot read {path}: {err.strerror}", span) from None
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise IncludeError(
+            f"{path} is not UTF-8 text (byte {err.start}); is it a binary file?", span
+        ) from None
+
+
+def parse_file(path: str | os.PathLike[str]) -> tuple[ast.Statement, ...]:
+    """Parse a model file and, recursively, every file it includes.
+
+    Each :class:`~mbcal.language.ast.Include` in the result carries the statements of the
+    included file.  Include paths are relative to the including file.
+
+    Raises
+    ------
+    IncludeError
+        A file is missing or unreadable, or an include cycle is found (the message lists it).
+    MdlSyntaxError
+        In the file where the syntax error is.
+    """
+    return _parse_with_includes(Path(path), (), None)
+
+
+def _display_path(path: Path) -> str:
+    try:
+        rel = os.path.relpath(path)
+    except ValueError:  # another drive on Windows
+        return str(path)
+    return rel if not rel.startswith("..") else str(path)
+
+
+def _parse_with_includes(path: Path, stack: tuple[Path, ...], span: SourceSpan | None) -> tuple[ast.Statement, ...]:
+    resolved = path.resolve()
+    if resolved in stack:
+        cycle = " -> ".join(_display_path(p) for p in (*stack[stack.index(resolved):], resolved))
+        raise IncludeError(f"include cycle: {cycle}", span)
+    if len(stack) >= MAX_INCLUDE_DEPTH:
+        raise IncludeError(f"includes nested deeper than {MAX_INCLUDE_DEPTH} files", span)
+    display = _display_path(path) if span is None else _display_path(resolved)
+    text = _read_model_text(path, span)
+    statements = parse_text(text, display)
+    return _resolve_includes(statements, resolved, (*stack, resolved))
+
+
+def _resolve_includes(
+    statements: tuple[ast.Statement, ...], current: Path, stack: tuple[Path, ...]
+) -> tuple[ast.Statement, ...]:
+    out: list[ast.Statement] = []
+    for stmt in statements:
+        if isinstance(stmt, ast.Include):
+            target = (current.parent / stmt.path)
+            body = _parse_with_includes(target, stack, stmt.span)
+            stmt = ast.Include(span=stmt.span, path=stmt.path, resolved=str(target.resolve()), statements=body)
+        elif isinstance(stmt, (ast.Frame, ast.Instance, ast.Template)):
+            body = _resolve_includes(stmt.body, current, stack)
+            stmt = _replace_body(stmt, body)
+        out.append(stmt)
+    return tuple(out)
+
+
+def _replace_body(stmt, body):
+    from dataclasses import replace
+
+    return replace(stmt, body=body)

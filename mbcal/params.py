@@ -1,0 +1,288 @@
+"""param(p, x): which parameters are unknown, what the known ones are, per configuration.
+
+A :class:`ParameterSet` splits a model's parameters into unknowns x (to estimate) and known
+values p, and maps x back to the full parameter matrix X — one row per configuration — that
+:func:`mbcal.modeler.modeler` takes (seed eq. 12).
+
+Configurations are the attitudes of a robot, the views of a camera, ...: a parameter declared
+``per configuration`` has one copy per configuration, known (a joint reading) or unknown (the
+pose of a target in each view).  Unknown copies are named ``name@configuration``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from mbcal.errors import ParameterError, suggest
+from mbcal.language.model import Model, ParamInfo
+
+Array = Any
+
+__all__ = ["ParameterSet", "Unknown", "DEFAULT_CONFIGURATION"]
+
+DEFAULT_CONFIGURATION = "default"
+
+
+@dataclass(frozen=True)
+class Unknown:
+    """One entry of x.
+
+    Attributes
+    ----------
+    name : str
+        ``param`` or ``param@configuration`` for a per-configuration copy.
+    param : ParamInfo
+        The model parameter it sets.
+    configuration : str or None
+        The configuration of a per-configuration copy (None: the same in all).
+    """
+
+    name: str
+    param: ParamInfo
+    configuration: str | None
+
+    @property
+    def lower(self) -> float | None:
+        return self.param.lower
+
+    @property
+    def upper(self) -> float | None:
+        return self.param.upper
+
+    @property
+    def sigma(self) -> float | None:
+        return self.param.sigma
+
+
+class ParameterSet:
+    """The split of a model's parameters into unknown x and known p.
+
+    Parameters
+    ----------
+    model : Model
+        The model description.
+    unknown : sequence of str
+        Names or glob patterns (``room.*``, ``arm.offset?``) of the parameters to estimate.
+        ``pattern@config`` selects the copy of a per-configuration parameter in one
+        configuration only.
+    known : mapping, optional
+        Values (SI units) that replace the model's nominal values: ``{"lever.angle": 0.5}``;
+        ``"name@config"`` sets one configuration's copy.
+    configurations : sequence of str, optional
+        Names of the configurations (default: one, called ``default``).
+    per_configuration : mapping, optional
+        ``{config: {name: value}}``: known per-configuration values (joint readings).
+
+    Raises
+    ------
+    ParameterError
+        An unknown name or pattern matches nothing (the message lists close matches), a value
+        is not finite, or a per-configuration value is given for a parameter that is not
+        declared ``per configuration``.
+    """
+
+    def __init__(
+        self,
+        model: Model,
+        unknown: Sequence[str] = (),
+        *,
+        known: Mapping[str, float] | None = None,
+        configurations: Sequence[str] | None = None,
+        per_configuration: Mapping[str, Mapping[str, float]] | None = None,
+    ):
+        self.model = model
+        configs = list(configurations) if configurations else [DEFAULT_CONFIGURATION]
+        if len(set(configs)) != len(configs):
+            raise ParameterError("configuration names must be unique")
+        self.configurations: tuple[str, ...] = tuple(configs)
+        self._config_index = {c: i for i, c in enumerate(configs)}
+        n = len(model.params)
+        base = np.tile(model.nominal, (len(configs), 1))
+        for key, value in (known or {}).items():
+            name, config = _split(key)
+            i = model.param_index(name)
+            rows = [self._config(config, key)] if config is not None else list(range(len(configs)))
+            if config is not None and not model.params[i].per_configuration:
+                raise ParameterError(f"'{name}' is not declared 'per configuration'; set it without '@{config}'")
+            base[rows, i] = _finite(value, key)
+        for config, values in (per_configuration or {}).items():
+            row = self._config(config, config)
+            for name, value in values.items():
+                i = model.param_index(name)
+                if not model.params[i].per_configuration:
+                    raise ParameterError(
+                        f"configuration '{config}' gives a value for '{name}', which is not declared "
+                        "'per configuration' in the model",
+                        hint=f"declare it as 'param {name} = ... per configuration'",
+                    )
+                base[row, i] = _finite(value, f"{name}@{config}")
+        self.known = base  # (C, n): the known values, and initial values of the unknowns
+
+        unknowns: list[Unknown] = []
+        seen: set[str] = set()
+        for pattern in unknown:
+            name_pattern, config = _split(pattern)
+            if config is not None:
+                self._config(config, pattern)
+            matches = model.match_params(name_pattern)
+            if not matches:
+                hint = suggest(name_pattern, model.names("param"))
+                raise ParameterError(f"no parameter matches '{pattern}'", hint=hint or _listing(model))
+            for name in matches:
+                info = model.param(name)
+                if info.per_configuration:
+                    selected = [config] if config is not None else configs
+                    entries = [Unknown(f"{name}@{c}", info, c) for c in selected]
+                else:
+                    if config is not None:
+                        raise ParameterError(f"'{name}' is not declared 'per configuration'; drop '@{config}'")
+                    entries = [Unknown(name, info, None)]
+                for e in entries:
+                    if e.name not in seen:
+                        seen.add(e.name)
+                        unknowns.append(e)
+        # Global unknowns first (model order), then per-configuration copies by configuration.
+        unknowns.sort(key=lambda u: (u.configuration is not None, self._config_index.get(u.configuration or "", 0),
+                                     u.param.index))
+        self.unknowns: tuple[Unknown, ...] = tuple(unknowns)
+
+        rows, cols, src = [], [], []
+        for j, u in enumerate(self.unknowns):
+            targets = [self._config_index[u.configuration]] if u.configuration is not None else range(len(configs))
+            for r in targets:
+                rows.append(r)
+                cols.append(u.param.index)
+                src.append(j)
+        self._rows = np.asarray(rows, dtype=np.int64)
+        self._cols = np.asarray(cols, dtype=np.int64)
+        self._src = np.asarray(src, dtype=np.int64)
+        self._n_params = n
+
+    # ---- basic properties ----------------------------------------------------------------------
+
+    def _config(self, name: str, context: str) -> int:
+        if name not in self._config_index:
+            raise ParameterError(
+                f"'{context}': no configuration named '{name}'",
+                hint=suggest(name, self._config_index) or f"configurations: {', '.join(self.configurations)}",
+            )
+        return self._config_index[name]
+
+    @property
+    def names(self) -> list[str]:
+        """Names of the unknowns, in the order of x."""
+        return [u.name for u in self.unknowns]
+
+    @property
+    def size(self) -> int:
+        """Number of unknowns."""
+        return len(self.unknowns)
+
+    def __len__(self) -> int:
+        return len(self.unknowns)
+
+    @property
+    def x0(self) -> np.ndarray:
+        """The unknowns' initial values: nominal (or given) values."""
+        return self.known[self._slot_rows(), [u.param.index for u in self.unknowns]].astype(float)
+
+    def _slot_rows(self) -> list[int]:
+        return [self._config_index[u.configuration] if u.configuration is not None else 0 for u in self.unknowns]
+
+    @property
+    def lower(self) -> np.ndarray:
+        """Lower ends of the search ranges (nan where none is declared)."""
+        return np.array([np.nan if u.lower is None else u.lower for u in self.unknowns], dtype=float)
+
+    @property
+    def upper(self) -> np.ndarray:
+        """Upper ends of the search ranges (nan where none is declared)."""
+        return np.array([np.nan if u.upper is None else u.upper for u in self.unknowns], dtype=float)
+
+    @property
+    def prior_sigma(self) -> np.ndarray:
+        """Prior standard deviations (nan where none is declared)."""
+        return np.array([np.nan if u.sigma is None else u.sigma for u in self.unknowns], dtype=float)
+
+    @property
+    def prior_mean(self) -> np.ndarray:
+        """The values the priors pull towards: the model's nominal values."""
+        return np.array([u.param.nominal for u in self.unknowns], dtype=float)
+
+    # ---- the mapping -----------------------------------------------------------------------------
+
+    def param(self, x: Array, known: Array | None = None) -> Array:
+        """X = param(p, x): the (C, n_params) matrix of all parameter values, one row per configuration.
+
+        Differentiable with respect to ``x`` (JAX).  ``known`` replaces :attr:`known` (same shape)
+        without recompiling a jitted caller.
+        """
+        from mbcal._jax import jnp
+
+        base = jnp.asarray(self.known if known is None else known)
+        if self.size == 0:
+            return base
+        x = jnp.asarray(x)
+        return base.at[self._rows, self._cols].set(x[self._src])
+
+    def X(self, x: Array | None = None) -> np.ndarray:
+        """Like :meth:`param`, eagerly with numpy (default x: :attr:`x0`)."""
+        X = self.known.copy()
+        if self.size:
+            x = self.x0 if x is None else np.asarray(x, dtype=float)
+            X[self._rows, self._cols] = x[self._src]
+        return X
+
+    def to_dict(self, x: Array) -> dict[str, float]:
+        """x as ``{unknown name: value}`` (SI units)."""
+        x = np.asarray(x, dtype=float)
+        return {u.name: float(v) for u, v in zip(self.unknowns, x)}
+
+    def from_dict(self, values: Mapping[str, float], default: Array | None = None) -> np.ndarray:
+        """x from ``{unknown name: value}``; missing entries come from ``default`` (or :attr:`x0`)."""
+        x = np.array(self.x0 if default is None else default, dtype=float)
+        index = {u.name: j for j, u in enumerate(self.unknowns)}
+        for name, value in values.items():
+            if name not in index:
+                raise ParameterError(f"'{name}' is not an unknown", hint=suggest(name, index))
+            x[index[name]] = _finite(value, name)
+        return x
+
+    def values(self, x: Array | None = None, configuration: str | None = None) -> dict[str, float]:
+        """All parameter values by name for one configuration (default: the first)."""
+        X = self.X(x)
+        row = 0 if configuration is None else self._config(configuration, configuration)
+        return {p.name: float(X[row, p.index]) for p in self.model.params}
+
+    def info(self, name: str) -> ParamInfo:
+        """The model parameter behind an unknown name (``arm.q1@pose3`` → ``arm.q1``)."""
+        return self.model.param(_split(name)[0])
+
+
+def _split(key: str) -> tuple[str, str | None]:
+    if "@" in key:
+        name, config = key.split("@", 1)
+        return name, config
+    return key, None
+
+
+def _finite(value: Any, what: str) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ParameterError(f"'{what}': not a number: {value!r}") from None
+    if not np.isfinite(v):
+        raise ParameterError(f"'{what}': value must be finite, got {v}")
+    return v
+
+
+def _listing(model: Model) -> str:
+    names = model.names("param")
+    if not names:
+        return "the model declares no parameters"
+    shown = ", ".join(names[:12]) + (", ..." if len(names) > 12 else "")
+    return f"parameters: {shown}"

@@ -1,0 +1,98 @@
+"""Units and dimensions of model quantities.
+
+mbcal stores every value in SI: metres and radians.  A literal without a unit is taken as SI
+and is *free*: it takes on whatever dimension the expression around it needs, so ``0.2`` is
+0.2 m where a length is expected and 0.2 rad where an angle is.  A literal with a unit has a
+fixed dimension, and mixing dimensions (adding an angle to a length, giving an angle where a
+length is expected) is a :class:`~mbcal.errors.UnitError`.
+
+Angles are treated as a dimension of their own (not as dimensionless, as SI would), because
+the mistake users most often make is an angle where a length belongs, or the reverse.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from fractions import Fraction
+
+__all__ = ["Dim", "LENGTH", "ANGLE", "DIMENSIONLESS", "UNITS", "describe", "unify", "fits"]
+
+
+@dataclass(frozen=True)
+class Dim:
+    """A physical dimension: powers of length and angle."""
+
+    length: Fraction = Fraction(0)
+    angle: Fraction = Fraction(0)
+
+    def __mul__(self, other: Dim) -> Dim:
+        return Dim(self.length + other.length, self.angle + other.angle)
+
+    def __truediv__(self, other: Dim) -> Dim:
+        return Dim(self.length - other.length, self.angle - other.angle)
+
+    def __pow__(self, k: Fraction | int | float) -> Dim:
+        k = Fraction(k).limit_denominator(1000)
+        return Dim(self.length * k, self.angle * k)
+
+    @property
+    def is_dimensionless(self) -> bool:
+        return self.length == 0 and self.angle == 0
+
+
+LENGTH = Dim(Fraction(1), Fraction(0))
+ANGLE = Dim(Fraction(0), Fraction(1))
+DIMENSIONLESS = Dim()
+
+# unit name → (factor to SI, dimension)
+UNITS: dict[str, tuple[float, Dim]] = {
+    "m": (1.0, LENGTH),
+    "cm": (0.01, LENGTH),
+    "mm": (0.001, LENGTH),
+    "um": (1e-6, LENGTH),
+    "km": (1000.0, LENGTH),
+    "inch": (0.0254, LENGTH),
+    "ft": (0.3048, LENGTH),
+    "rad": (1.0, ANGLE),
+    "mrad": (0.001, ANGLE),
+    "deg": (math.pi / 180.0, ANGLE),
+}
+
+
+def _power(name: str, p: Fraction) -> str:
+    if p == 1:
+        return name
+    return f"{name}^{p}"
+
+
+def describe(dim: Dim | None) -> str:
+    """Human words for a dimension: 'a length (m)', 'an angle (rad)', 'a plain number'."""
+    if dim is None:
+        return "a number without unit"
+    if dim == LENGTH:
+        return "a length (m)"
+    if dim == ANGLE:
+        return "an angle (rad)"
+    if dim.is_dimensionless:
+        return "a plain number"
+    parts = []
+    if dim.length:
+        parts.append(_power("m", dim.length))
+    if dim.angle:
+        parts.append(_power("rad", dim.angle))
+    return "a quantity in " + "·".join(parts)
+
+
+def unify(a: Dim | None, b: Dim | None) -> tuple[bool, Dim | None]:
+    """The common dimension of two summands; (False, None) when they cannot be added."""
+    if a is None:
+        return True, b
+    if b is None or a == b:
+        return True, a
+    return False, None
+
+
+def fits(dim: Dim | None, expected: Dim) -> bool:
+    """Whether a value of dimension ``dim`` may stand where ``expected`` is required."""
+    return dim is None or dim == expected

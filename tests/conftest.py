@@ -1,0 +1,36 @@
+"""Shared fixtures: paths to the repository's models and to ../shared/data."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+MODELS = ROOT / "models"
+MEASUREMENTS = ROOT / "measurements"
+SHARED_DATA = ROOT.parent / "shared" / "data"
+
+
+def shared_data(*parts: str) -> Path:
+    """A path under ../shared/data, or skip the test when that folder is absent."""
+    path = SHARED_DATA.joinpath(*parts)
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"../shared/data is not beside the checkout ({SHARED_DATA}); it holds the real data sets")
+    if not path.exists():
+        pytest.fail(f"{path} is missing from ../shared/data")
+    return path
+
+
+@pytest.fixture
+def write_model(tmp_path, monkeypatch):
+    """Write model text to a file in a temporary folder (the working directory) and return its name."""
+    monkeypatch.chdir(tmp_path)
+
+    def write(text: str, name: str = "model.mdl") -> str:
+        path = tmp_path / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text, encoding="utf-8")
+        return name
+
+    return write

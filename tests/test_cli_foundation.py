@@ -1,0 +1,77 @@
+"""`mbcal check` and `mbcal scene` through the real command line."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from conftest import MODELS
+
+
+def run(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "mbcal", *args], capture_output=True, text=True, cwd=cwd, timeout=300)
+
+
+def test_check_prints_a_summary_of_both_bundled_models():
+    result = run("check", str(MODELS / "teleexistence.mdl"), str(MODELS / "arm7.mdl"))
+    assert result.returncode == 0, result.stderr
+    assert "room.yaw" in result.stdout and "arm.offset7" in result.stdout
+    assert "669×453" in result.stdout
+    assert "ok: 2 models checked" in result.stdout
+
+
+def test_check_reports_a_bad_model_with_location_caret_and_exit_2(tmp_path):
+    (tmp_path / "bad.mdl").write_text("param a = 1 m\nframe f at rot_z(a)\n")
+    result = run("check", "bad.mdl", cwd=tmp_path)
+    assert result.returncode == 2
+    assert result.stderr.splitlines() == [
+        "bad.mdl:2:18: rot_z() angle must be an angle (rad), got a length (m)",
+        "    frame f at rot_z(a)",
+        "                     ^",
+    ]
+    assert "Traceback" not in result.stderr
+
+
+def test_check_of_a_missing_file_exits_2_without_traceback(tmp_path):
+    result = run("check", "nothere.mdl", cwd=tmp_path)
+    assert result.returncode == 2
+    assert "file not found" in result.stderr and "Traceback" not in result.stderr
+
+
+@pytest.mark.parametrize("suffix", ["glb", "obj", "stl"])
+def test_scene_exports_a_file_that_trimesh_reads_back(tmp_path, suffix):
+    import trimesh
+
+    out = tmp_path / f"room.{suffix}"
+    result = run("scene", str(MODELS / "teleexistence.mdl"), "--set", "lever.angle=45deg", "-o", str(out))
+    assert result.returncode == 0, result.stderr
+    loaded = trimesh.load(out)
+    assert loaded.bounds[1][2] > 1.3
+    assert not list(tmp_path.glob("*.part"))
+
+
+def test_scene_refuses_to_overwrite_its_input(tmp_path):
+    model = tmp_path / "m.mdl"
+    model.write_text("frame f { shape box(1 m, 1 m, 1 m) }\n")
+    before = model.read_bytes()
+    result = run("scene", str(model), "-o", str(model))
+    assert result.returncode == 2
+    assert "refusing to overwrite the input file" in result.stderr
+    assert model.read_bytes() == before
+
+
+def test_set_with_unknown_parameter_suggests_names(tmp_path):
+    result = run("scene", str(MODELS / "teleexistence.mdl"), "--set", "lever.angel=3deg", "-o", str(tmp_path / "x.glb"))
+    assert result.returncode == 2
+    assert "lever.angle" in result.stderr
+
+
+def test_help_lists_commands_with_examples():
+    result = run("--help")
+    assert result.returncode == 0
+    for command in ("check", "scene"):
+        assert command in result.stdout
+        sub = run(command, "--help")
+        assert "example:" in sub.stdout

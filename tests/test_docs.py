@@ -1,0 +1,55 @@
+"""The documentation's examples run: every ```mdl block loads, every ```python block executes."""
+
+from __future__ import annotations
+
+import re
+import shutil
+from pathlib import Path
+
+import pytest
+
+from mbcal.language import load_model
+
+from conftest import ROOT
+
+DOCS = sorted((ROOT / "docs").glob("*.md")) + [ROOT / "README.md"]
+FENCE = re.compile(r"^```(\w[\w-]*)([^\n]*)\n(.*?)^```", re.S | re.M)
+
+
+def blocks(path: Path, language: str) -> list[tuple[int, str, str]]:
+    """(line, info string, text) of every fenced block of one language."""
+    text = path.read_text(encoding="utf-8")
+    out = []
+    for m in FENCE.finditer(text):
+        if m.group(1) == language:
+            out.append((text.count("\n", 0, m.start()) + 1, m.group(2).strip(), m.group(3)))
+    return out
+
+
+MDL_BLOCKS = [(p, line, info, body) for p in DOCS for line, info, body in blocks(p, "mdl")]
+
+
+@pytest.mark.parametrize("doc, line, info, body", MDL_BLOCKS, ids=[f"{p.name}:{ln}" for p, ln, _, _ in MDL_BLOCKS])
+def test_mdl_example_loads(doc, line, info, body, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    shutil.copytree(ROOT / "models" / "meshes", tmp_path / "meshes")
+    # Blocks marked file=NAME are helper files that later examples of the same page include.
+    for _, other_info, other_body in blocks(doc, "mdl"):
+        if other_info.startswith("file="):
+            target = tmp_path / other_info.split("=", 1)[1]
+            target.parent.mkdir(parents=True, exist_ok=True)
+            target.write_text(other_body, encoding="utf-8")
+    (tmp_path / "example.mdl").write_text(body, encoding="utf-8")
+    model = load_model("example.mdl")
+    assert model is not None
+
+
+def test_language_reference_has_an_example_for_every_statement():
+    text = (ROOT / "docs" / "language.md").read_text(encoding="utf-8")
+    examples = "\n".join(body for _, _, body in blocks(ROOT / "docs" / "language.md", "mdl"))
+    for keyword in ["param", "let", "template", "frame", "object", "link", "shape", "point", "joint", "camera",
+                    "range", "target", "include", "measure", "per configuration", "sigma", "±", "mesh(", "tube"]:
+        assert keyword in examples, keyword
+    for function in ["translate", "rot_x", "rpy", "pose(", "axis_angle", "quat", "look_at", "sqrt", "atan2", "hypot"]:
+        assert function in examples, function
+    assert "## Errors" in text

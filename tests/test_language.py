@@ -1,0 +1,251 @@
+"""The model language: every construct parses, checks and means what the reference says."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mbcal import errors
+from mbcal.language import load_model, load_model_text
+from mbcal.language.parse import grammar_path, parse_text
+from mbcal.modeler import modeler
+
+from conftest import MODELS
+
+
+@pytest.mark.parametrize("path", sorted(MODELS.glob("*.mdl")), ids=lambda p: p.name)
+def test_every_bundled_model_parses_and_builds(path):
+    model = load_model(path)
+    scene = modeler(model, model.nominal)
+    assert np.all(np.isfinite(np.asarray(scene.points)))
+    assert np.all(np.isfinite(np.asarray(scene.frame_poses)))
+
+
+def test_teleexistence_model_has_the_seeds_objects_and_a_669x453_stereo_camera():
+    model = load_model(MODELS / "teleexistence.mdl")
+    assert {"room.x", "room.y", "room.z", "room.roll", "room.pitch", "room.yaw", "lever.angle"} <= set(
+        model.names("param")
+    )
+    assert [(c.width, c.height) for c in model.cameras] == [(669, 453), (669, 453)]
+    kinds = {s.kind for s in model.shapes}
+    assert {"tube", "box", "cylinder", "sphere", "cone"} <= kinds
+    assert len(model.points) >= 24
+    # The lever is about 0.8 m from the cameras, as in section 4.2.
+    scene = modeler(model, model.nominal)
+    left = np.asarray(scene.camera("eyes.left").center)
+    hub = np.asarray(scene.point("lever.hub"))
+    assert 0.7 < np.linalg.norm(hub - left) < 0.9
+
+
+def test_arm_model_has_seven_offsets_torso_and_three_dof_neck():
+    model = load_model(MODELS / "arm7.mdl")
+    offsets = model.match_params("arm.offset*")
+    assert offsets == [f"arm.offset{i}" for i in range(1, 8)]
+    assert all(model.param(f"arm.q{i}").per_configuration for i in range(1, 8))
+    assert model.param("torso.q").per_configuration
+    assert [f.joint is not None for f in model.frames].count(True) == 1 + 3 + 7
+
+
+def test_units_are_normalised_to_metres_and_radians():
+    model = load_model_text(
+        "param a = 25 mm\nparam b = 3 cm\nparam c = 90 deg\nparam d = 2 inch\nparam e = 0.5\n"
+        "param f = 1 km\nparam g = 5 mrad\n"
+    )
+    values = dict(zip(model.names("param"), model.nominal))
+    assert values["a"] == pytest.approx(0.025)
+    assert values["b"] == pytest.approx(0.03)
+    assert values["c"] == pytest.approx(math.pi / 2)
+    assert values["d"] == pytest.approx(0.0508)
+    assert values["e"] == 0.5
+    assert values["f"] == pytest.approx(1000.0)
+    assert values["g"] == pytest.approx(0.005)
+
+
+def test_parameter_range_sigma_and_per_configuration_are_recorded():
+    model = load_model_text(
+        "param room.x = 1 cm in [-10 cm, 10 cm] sigma 2 mm\nparam q[1..3] = 0 deg per configuration\n"
+    )
+    p = model.param("room.x")
+    assert (p.nominal, p.lower, p.upper, p.sigma) == pytest.approx((0.01, -0.1, 0.1, 0.002))
+    assert not p.per_configuration
+    assert model.names("param")[1:] == ["q1", "q2", "q3"]
+    assert model.param("q2").per_configuration
+    assert model.param("q2").unit == "deg"
+
+
+def test_arithmetic_and_functions_are_evaluated_without_eval():
+    text = """
+    param a = 3 m
+    param t = 30 deg
+    let s = sqrt(a * a + 16 m * 1 m)        # 5 m
+    frame f at translate(s, a * sin(t) + 2^3 * 1 cm, -(1 m - 2 m) / 4) {
+      point p = (max(1 m, 2 m) - abs(-0.5 m), atan2(1 m, 1 m) / (pi * 1 rad) * 1 m, hypot(3 m, 4 m))
+      point q = (cos(t) * 1 m, tan(45 deg) * 1 m, asin(0.5) / 1 rad * 1 m)
+    }
+    """
+    model = load_model_text(text)
+    scene = modeler(model, model.nominal)
+    T = np.asarray(scene.frame("f"))
+    np.testing.assert_allclose(T[:3, 3], [5.0, 1.5 + 0.08, 0.25])
+    np.testing.assert_allclose(np.asarray(scene.point("f.p")) - T[:3, 3], [1.5, 0.25, 5.0])
+    np.testing.assert_allclose(np.asarray(scene.point("f.q")) - T[:3, 3], [math.cos(math.pi / 6), 1.0, math.pi / 6])
+
+
+def test_operator_precedence_unary_minus_binds_looser_than_power():
+    model = load_model_text("frame f at translate(-2^2 * 1 m, 2 * 3 + 4 * 1 m, 2^3^2 / 512 * 1 m)")
+    T = np.asarray(modeler(model, model.nominal).frame("f"))
+    np.testing.assert_allclose(T[:3, 3], [-4.0, 10.0, 1.0])
+
+
+def test_comments_semicolons_and_newlines_are_free():
+    a = load_model_text("param a = 1 m # a comment\nframe f at (a, 0, 0) { point p = (0, 0, 0); point q = (1, 0, 0) }")
+    b = load_model_text("param a = 1 m frame f at (a, 0, 0) {\npoint p = (0, 0, 0)\npoint q = (1, 0, 0)\n}")
+    assert a.names("point") == b.names("point") == ["f.p", "f.q"]
+
+
+def test_syntax_tree_ignores_positions_when_compared():
+    assert parse_text("param a = 1 m", "x.mdl") == parse_text("\n\n   param a =   1 m", "y.mdl")
+
+
+def test_templates_take_positional_keyword_and_default_arguments():
+    text = """
+    template pipe(length, radius = 2 cm) {
+      shape tube(radius, radius - 3 mm, length)
+      point end_a = (0, 0, -length / 2)
+      point end_b = (0, 0, length / 2)
+    }
+    object a = pipe(1 m) at (0, 1 m, 0)
+    object b = pipe(radius = 4 cm, length = 50 cm) at (0, 2 m, 0) { point mark = (4 cm, 0, 0) }
+    """
+    model = load_model_text(text)
+    scene = modeler(model, model.nominal)
+    np.testing.assert_allclose(np.asarray(scene.point("a.end_b")), [0, 1, 0.5])
+    np.testing.assert_allclose(np.asarray(scene.point("b.end_a")), [0, 2, -0.25])
+    np.testing.assert_allclose(np.asarray(scene.point("b.mark")), [0.04, 2, 0])
+    dims = np.asarray(scene.shape_dims)
+    np.testing.assert_allclose(dims[0], [0.02, 0.017, 1.0])
+    np.testing.assert_allclose(dims[1], [0.04, 0.037, 0.5])
+
+
+def test_parameters_declared_in_a_template_are_prefixed_per_instance():
+    text = """
+    template fan(r) {
+      param angle = 0 deg in [0 deg, 90 deg]
+      object blade at rot_z(angle) { point tip = (r, 0, 0) }
+    }
+    object left = fan(10 cm)
+    object right = fan(20 cm) at (1 m, 0, 0)
+    """
+    model = load_model_text(text)
+    assert model.names("param") == ["left.angle", "right.angle"]
+    scene = modeler(model, {"right.angle": math.pi / 2})
+    np.testing.assert_allclose(np.asarray(scene.point("left.blade.tip")), [0.1, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(np.asarray(scene.point("right.blade.tip")), [1.0, 0.2, 0], atol=1e-12)
+
+
+def test_template_body_does_not_see_the_callers_lets():
+    text = "template t() { point p = (secret, 0, 0) }\nframe f { let secret = 1 m\n object x = t() }"
+    with pytest.raises(errors.UndefinedNameError):
+        load_model_text(text)
+
+
+def test_names_resolve_relative_to_enclosing_frames_first():
+    text = """
+    param x = 5 m
+    frame room {
+      param x = 1 m               # room.x
+      point p = (x, 0, 0)         # finds room.x, not the top-level x
+      point q = (room.x + 0 m, 0, 0)
+    }
+    point top = (x, 0, 0)
+    """
+    model = load_model_text(text)
+    scene = modeler(model, model.nominal)
+    assert float(scene.point("room.p")[0]) == 1.0
+    assert float(scene.point("room.q")[0]) == 1.0
+    assert float(scene.point("top")[0]) == 5.0
+
+
+def test_include_brings_templates_and_parameters(write_model):
+    write_model("template marker() { point m = (0, 0, 1 cm) }\nparam shared.h = 2 m\n", "lib/parts.mdl")
+    path = write_model('include "lib/parts.mdl"\nobject a = marker() at (0, 0, shared.h)\n')
+    model = load_model(path)
+    np.testing.assert_allclose(np.asarray(modeler(model, model.nominal).point("a.m")), [0, 0, 2.01])
+    assert len(model.files) == 2
+
+
+def test_include_inside_a_frame_mounts_the_file_under_it(write_model):
+    write_model("param q = 0 deg\nobject stick at rot_x(q) { point tip = (0, 0, 1 m) }\n", "stick.mdl")
+    path = write_model('frame base at (1 m, 0, 0) { include "stick.mdl" }\n')
+    model = load_model(path)
+    assert model.names("param") == ["base.q"]
+    scene = modeler(model, {"base.q": -math.pi / 2})
+    np.testing.assert_allclose(np.asarray(scene.point("base.stick.tip")), [1, 1, 0], atol=1e-12)
+
+
+def test_meshes_load_relative_to_the_model_file_with_scale(write_model, tmp_path):
+    import trimesh
+
+    (tmp_path / "meshes").mkdir()
+    trimesh.creation.box(extents=(1, 2, 3)).export(tmp_path / "meshes" / "part.stl")
+    write_model('frame f {\n  shape part = mesh("../meshes/part.stl", scale = 0.5)\n}\n', "sub/model.mdl")
+    model = load_model("sub/model.mdl")
+    shape = model.shapes[0]
+    assert shape.kind == "mesh" and shape.name == "f.part"
+    scene = modeler(model, model.nominal)
+    bounds = scene.to_trimesh().bounds
+    np.testing.assert_allclose(bounds, [[-0.25, -0.5, -0.75], [0.25, 0.5, 0.75]], atol=1e-9)
+
+
+def test_range_sensor_directions_are_normalised():
+    model = load_model_text(
+        "range a(direction = (0, 0, 2))\nrange b(directions = [(1, 0, 0), (0, 3, 4)])\n"
+        "range c(fov = (40 deg, 30 deg), rays = (4, 3), max = 5 m)\n"
+    )
+    np.testing.assert_allclose(model.ranges[0].directions, [[0, 0, 1]])
+    np.testing.assert_allclose(model.ranges[1].directions, [[1, 0, 0], [0, 0.6, 0.8]])
+    assert model.ranges[2].directions.shape == (12, 3)
+    assert model.ranges[2].max_range == 5.0
+    np.testing.assert_allclose(np.linalg.norm(model.ranges[2].directions, axis=1), 1.0)
+
+
+def test_camera_intrinsics_and_distortion_may_be_parameters():
+    text = """
+    param cam.f = 800 in [600, 1000]
+    param cam.k1 = -0.2
+    camera c(width = 640, height = 480, f = cam.f, cx = 320, cy = 240, k1 = cam.k1, p2 = 0.001)
+    """
+    model = load_model_text(text)
+    scene = modeler(model, {"cam.f": 900.0})
+    view = scene.camera("c")
+    np.testing.assert_allclose(np.asarray(view.intrinsics), [900, 900, 320, 240, 0])
+    np.testing.assert_allclose(np.asarray(view.distortion), [-0.2, 0, 0, 0.001, 0])
+
+
+def test_chessboard_target_names_corners_row_by_row():
+    model = load_model_text("target board = chessboard(rows = 2, cols = 3, square = 25 mm) at (1 m, 0, 0)")
+    assert model.names("point") == [f"board.r{r}c{c}" for r in range(2) for c in range(3)]
+    scene = modeler(model, model.nominal)
+    np.testing.assert_allclose(np.asarray(scene.point("board.r1c2")), [1.05, 0.025, 0])
+
+
+def test_measure_statement_lists_measurement_models():
+    assert load_model_text("measure image_point, range\nmeasure distance").measures == (
+        "image_point",
+        "range",
+        "distance",
+    )
+
+
+def test_unique_suffix_finds_a_deep_name():
+    model = load_model(MODELS / "arm7.mdl")
+    assert model.resolve("point", "hand.tip").endswith(".wrist_flexion.hand.tip")
+    with pytest.raises(errors.UnknownNameError, match="ambiguous"):
+        model.resolve("shape", "bone")
+
+
+def test_grammar_is_one_file_in_the_checkout():
+    assert grammar_path().name == "mdl.lark"
+    assert "start:" in grammar_path().read_text()

@@ -1,0 +1,236 @@
+"""Every kind of bad model input gets a typed error with its exact location and message."""
+
+from __future__ import annotations
+
+import pytest
+
+from mbcal import errors
+from mbcal.language import load_model
+
+# name → (model text, error type, exact "path:line:col: message" as str(error))
+GOLDEN = {
+    "syntax_missing_value": (
+        "param x = \n",
+        errors.MdlSyntaxError,
+        "model.mdl:1:11: unexpected end of file; expected '(', '+', '-', '[', a name, a number, a string",
+    ),
+    "syntax_unclosed_paren": (
+        "frame a {\n  point p = (1, 2\n}\n",
+        errors.MdlSyntaxError,
+        "model.mdl:3:1: unexpected '}'; expected ')', ',', ']'",
+    ),
+    "syntax_unexpected_character": (
+        "param x = 3 m $\n",
+        errors.MdlSyntaxError,
+        "model.mdl:1:15: unexpected character '$'; expected ')', '*', '+', '+-', ',', '-', '/', ';', ...",
+    ),
+    "undefined_name_suggests": (
+        "param lever.angle = 0 deg\nframe a {\n  joint revolute(z, lever.angel)\n}\n",
+        errors.UndefinedNameError,
+        "model.mdl:3:21: undefined name 'lever.angel' (did you mean 'lever.angle'?)",
+    ),
+    "undefined_template": (
+        "template pipe(length) { shape cylinder(1 cm, length) }\nobject p = pipes(1 m)\n",
+        errors.UndefinedNameError,
+        "model.mdl:2:12: no template named 'pipes' (did you mean 'pipe'?)",
+    ),
+    "duplicate_parameter": (
+        "param a = 1 m\nparam a = 2 m\n",
+        errors.DuplicateNameError,
+        "model.mdl:2:7: parameter 'a' is already declared at model.mdl:1:1",
+    ),
+    "duplicate_point": (
+        "frame f {\n  point p = (0, 0, 0)\n  point p = (1, 0, 0)\n}\n",
+        errors.DuplicateNameError,
+        "model.mdl:3:9: 'f.p' is already declared at model.mdl:2:9",
+    ),
+    "unit_mismatch_in_sum": (
+        "param a = 1 m + 30 deg\n",
+        errors.UnitError,
+        "model.mdl:1:11: cannot add a length (m) and an angle (rad)",
+    ),
+    "angle_where_length_expected": (
+        "frame f at translate(0, 30 deg, 0)\n",
+        errors.UnitError,
+        "model.mdl:1:25: translate() argument 'y' must be a length (m), got an angle (rad)",
+    ),
+    "length_where_angle_expected": (
+        "param len = 10 cm\nframe f at rot_z(len)\n",
+        errors.UnitError,
+        "model.mdl:2:18: rot_z() angle must be an angle (rad), got a length (m)",
+    ),
+    "too_few_arguments": (
+        "frame f {\n  shape box(1 m, 2 m)\n}\n",
+        errors.ArgumentError,
+        "model.mdl:2:3: box() is missing argument 'sz'",
+    ),
+    "too_many_template_arguments": (
+        "template pipe(length) { shape cylinder(1 cm, length) }\nobject p = pipe(1 m, 2 m, 3 m)\n",
+        errors.ArgumentError,
+        "model.mdl:2:22: template pipe() takes 1 argument (length) but 3 were given",
+    ),
+    "unknown_keyword_argument": (
+        "frame f {\n  shape tube(outer = 3 cm, inner = 2 cm, lenght = 1 m)\n}\n",
+        errors.ArgumentError,
+        "model.mdl:2:42: tube() has no argument 'lenght' (it takes outer, inner, length) (did you mean 'length'?)",
+    ),
+    "negative_dimension": (
+        "frame f {\n  shape sphere(-2 cm)\n}\n",
+        errors.DimensionError,
+        "model.mdl:2:16: sphere() dimension 'radius' must be positive, got -0.02 m at the nominal values",
+    ),
+    "tube_inner_larger_than_outer": (
+        "frame f {\n  shape tube(2 cm, 3 cm, 1 m)\n}\n",
+        errors.DimensionError,
+        "model.mdl:2:20: a tube's inner radius (0.03 m) must be smaller than its outer radius (0.02 m)",
+    ),
+    "unknown_shape": (
+        "frame f {\n  shape cilinder(1 cm, 1 m)\n}\n",
+        errors.UndefinedNameError,
+        "model.mdl:2:9: unknown shape 'cilinder' (one of box, cylinder, cone, sphere, tube, rectangle, plane, mesh)"
+        " (did you mean 'cylinder'?)",
+    ),
+    "unknown_function": (
+        "frame f at rotz(30 deg)\n",
+        errors.UndefinedNameError,
+        "model.mdl:1:12: unknown function 'rotz' (did you mean 'rot_z', 'rot_y', 'rot_x'?)",
+    ),
+    "joint_outside_a_frame": (
+        "param q = 0 deg\njoint revolute(z, q)\n",
+        errors.MdlError,
+        "model.mdl:2:1: a joint moves a frame: put it inside 'frame NAME { ... }'",
+    ),
+    "two_joints_in_one_frame": (
+        "param q = 0 deg\nframe f {\n  joint revolute(z, q)\n  joint revolute(x, q)\n}\n",
+        errors.DuplicateNameError,
+        "model.mdl:4:3: frame 'f' already has a joint at model.mdl:3:3",
+    ),
+    "parameter_value_not_constant": (
+        "param a = 1 m\nparam b = a * 2\n",
+        errors.MdlError,
+        "model.mdl:2:11: the nominal value of parameter 'b' must be a constant, but it depends on parameter 'a'",
+    ),
+    "let_cycle": (
+        "let a = b\nlet b = a\nframe f at translate(a, 0, 0)\n",
+        errors.MdlError,
+        "model.mdl:2:9: let 'a' is defined in terms of itself: a -> b -> a",
+    ),
+    "template_recursion": (
+        "template t() { object inner = t() }\nobject x = t()\n",
+        errors.MdlError,
+        "model.mdl:1:16: template instantiates itself: t -> t",
+    ),
+    "vector_where_number_expected": (
+        "frame f {\n  shape sphere((1, 2, 3))\n}\n",
+        errors.MdlTypeError,
+        "model.mdl:2:16: sphere() argument 'radius' must be a scalar, got a 3-vector",
+    ),
+    "camera_without_size": (
+        "camera c(f = 500)\n",
+        errors.ArgumentError,
+        "model.mdl:1:1: camera 'c' needs 'width' (image size in pixels)",
+    ),
+    "empty_search_range": (
+        "param a = 0 m in [1 m, -1 m]\n",
+        errors.DimensionError,
+        "model.mdl:1:19: empty search range [1, -1] for 'a' (lower bound above upper)",
+    ),
+    "reserved_word_as_name": (
+        "frame at { }\n",
+        errors.MdlError,
+        "model.mdl:1:7: 'at' is a reserved word and cannot name a frame",
+    ),
+    "sigma_with_wrong_unit": (
+        "param a = 0 m sigma 1 deg\n",
+        errors.UnitError,
+        "model.mdl:1:21: the sigma of 'a' is an angle (rad) but its value is a length (m)",
+    ),
+    "pose_that_is_not_a_transform": (
+        "param a = 1 m\nframe f at a\n",
+        errors.MdlTypeError,
+        "model.mdl:2:12: 'at' needs a transform (translate(...), rot_z(...), ...) or a position (x, y, z), "
+        "got a scalar",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", sorted(GOLDEN))
+def test_bad_model_gives_exact_located_error(case, write_model):
+    text, error_type, expected = GOLDEN[case]
+    path = write_model(text)
+    with pytest.raises(error_type) as info:
+        load_model(path)
+    assert str(info.value) == expected
+    assert isinstance(info.value, errors.MdlError)
+
+
+def test_rendered_error_shows_source_line_and_caret(write_model):
+    path = write_model("param len = 10 cm\nframe f at rot_z(len)\n")
+    with pytest.raises(errors.UnitError) as info:
+        load_model(path)
+    lines = info.value.render().splitlines()
+    assert lines[0] == "model.mdl:2:18: rot_z() angle must be an angle (rad), got a length (m)"
+    assert lines[1] == "    frame f at rot_z(len)"
+    assert lines[2] == "    " + " " * 17 + "^^^"
+
+
+def test_missing_include_names_the_including_file(write_model):
+    path = write_model('include "parts/nothere.mdl"\n')
+    with pytest.raises(errors.IncludeError) as info:
+        load_model(path)
+    assert str(info.value).startswith("model.mdl:1:1: file not found: ")
+    assert str(info.value).endswith("parts/nothere.mdl")
+
+
+def test_error_inside_included_file_names_that_file(write_model):
+    write_model("param a = 1 m + 2 deg\n", "parts/bad.mdl")
+    path = write_model('include "parts/bad.mdl"\n')
+    with pytest.raises(errors.UnitError) as info:
+        load_model(path)
+    assert str(info.value) == "parts/bad.mdl:1:11: cannot add a length (m) and an angle (rad)"
+
+
+def test_include_cycle_is_reported_with_the_chain(write_model):
+    write_model('include "b.mdl"\n', "a.mdl")
+    write_model('include "a.mdl"\n', "b.mdl")
+    with pytest.raises(errors.IncludeError) as info:
+        load_model("a.mdl")
+    assert str(info.value) == "b.mdl:1:1: include cycle: a.mdl -> b.mdl -> a.mdl"
+
+
+def test_missing_mesh_file_is_located(write_model):
+    path = write_model('frame f {\n  shape mesh("missing.stl")\n}\n')
+    with pytest.raises(errors.MeshError) as info:
+        load_model(path)
+    assert str(info.value).startswith("model.mdl:2:14: mesh file not found: ")
+
+
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        (b"", "mesh file is empty"),
+        (b"solid x\n this is not an stl file at all \x00\x01\x02", "mesh"),
+    ],
+)
+def test_empty_or_corrupt_mesh_is_a_mesh_error(content, message, write_model, tmp_path):
+    (tmp_path / "part.stl").write_bytes(content)
+    path = write_model('frame f {\n  shape mesh("part.stl")\n}\n')
+    with pytest.raises(errors.MeshError) as info:
+        load_model(path)
+    assert message in str(info.value)
+    assert str(info.value).startswith("model.mdl:2:14: ")
+
+
+def test_binary_include_is_an_include_error(write_model, tmp_path):
+    (tmp_path / "blob.mdl").write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00\xff\xfe")
+    path = write_model('include "blob.mdl"\n')
+    with pytest.raises(errors.IncludeError) as info:
+        load_model(path)
+    assert "not UTF-8 text" in str(info.value)
+
+
+def test_every_model_error_is_an_mbcal_error():
+    for name in dir(errors):
+        obj = getattr(errors, name)
+        if isinstance(obj, type) and issubclass(obj, Exception):
+            assert issubclass(obj, errors.MbcalError), name
