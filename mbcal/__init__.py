@@ -5,7 +5,7 @@ it, and estimate any parameter the measurements can observe.  The public API:
 
 >>> import mbcal
 >>> model = mbcal.load_model("models/teleexistence.mdl")          # doctest: +SKIP
->>> scene = mbcal.modeler(model, {"lever.angle": 0.5})             # doctest: +SKIP
+>>> scene = mbcal.modeling(model, {"lever.angle": 0.5})             # doctest: +SKIP
 >>> scene.point("room.valve.lever.tip")                             # doctest: +SKIP
 """
 
@@ -22,10 +22,27 @@ _EXPORTS = {
     "load_model": "mbcal.language",
     "load_model_text": "mbcal.language",
     "Model": "mbcal.language.model",
-    "modeler": "mbcal.modeler",
-    "parameter_vector": "mbcal.modeler",
+    "modeler": "mbcal.modeling",
+    "parameter_vector": "mbcal.modeling",
     "Scene": "mbcal.scene",
     "ParameterSet": "mbcal.params",
+    "Problem": "mbcal.problem",
+    "calibrate": "mbcal.api",
+    "simulate": "mbcal.api",
+    "observe": "mbcal.api",
+    "CalibrationResult": "mbcal.api",
+    "read_measurements": "mbcal.measurements.files",
+    "write_measurements": "mbcal.measurements.files",
+    "measurements_from_records": "mbcal.measurements.files",
+    "MeasurementSet": "mbcal.measurements.files",
+    "Measurement": "mbcal.measurements.files",
+    "MeasurementModel": "mbcal.measurements",
+    "Role": "mbcal.measurements",
+    "Batch": "mbcal.measurements",
+    "register_measurement_model": "mbcal.measurements",
+    "least_squares": "mbcal.solver",
+    "SolverConfig": "mbcal.solver",
+    "Status": "mbcal.solver",
     "MbcalError": "mbcal.errors",
     "MdlError": "mbcal.errors",
     "ParameterError": "mbcal.errors",

@@ -95,7 +95,7 @@ def parse_assignments(items: Sequence[str]) -> dict[str, float]:
 def cmd_scene(args: argparse.Namespace) -> int:
     from mbcal.fileio import atomic_write, check_output
     from mbcal.language import load_model
-    from mbcal.modeler import modeler, parameter_vector
+    from mbcal.modeling import modeler, parameter_vector
 
     out = check_output(args.output, [args.model], overwrite=True)
     fmt = out.suffix.lower().lstrip(".")

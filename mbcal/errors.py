@@ -177,9 +177,14 @@ def suggest(name: str, candidates: Iterable[str], n: int = 3) -> str | None:
     pool = sorted(set(candidates))
     close = difflib.get_close_matches(name, pool, n=n, cutoff=0.6)
     if not close:
-        # Also match on the last dotted component: 'lever.tpi' vs 'room.lever.tip'.
-        tail = name.rsplit(".", 1)[-1]
-        close = [c for c in pool if c.rsplit(".", 1)[-1] == tail][:n]
+        # Compare with the same number of trailing components: 'lever.tpi' vs 'room.valve.lever.tip'.
+        k = name.count(".") + 1
+        tails: dict[str, list[str]] = {}
+        for c in pool:
+            tails.setdefault(".".join(c.split(".")[-k:]), []).append(c)
+        for tail in difflib.get_close_matches(name, list(tails), n=n, cutoff=0.6):
+            close.extend(tails[tail])
+        close = close[:n]
     if not close:
         return None
     return "did you mean " + ", ".join(f"'{c}'" for c in close) + "?"

@@ -2,7 +2,7 @@
 
 A :class:`ParameterSet` splits a model's parameters into unknowns x (to estimate) and known
 values p, and maps x back to the full parameter matrix X — one row per configuration — that
-:func:`mbcal.modeler.modeler` takes (seed eq. 12).
+:func:`mbcal.modeling.modeler` takes (seed eq. 12).
 
 Configurations are the attitudes of a robot, the views of a camera, ...: a parameter declared
 ``per configuration`` has one copy per configuration, known (a joint reading) or unknown (the

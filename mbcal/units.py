@@ -16,7 +16,7 @@ import math
 from dataclasses import dataclass
 from fractions import Fraction
 
-__all__ = ["Dim", "LENGTH", "ANGLE", "DIMENSIONLESS", "UNITS", "describe", "unify", "fits"]
+__all__ = ["Dim", "LENGTH", "ANGLE", "DIMENSIONLESS", "UNITS", "describe", "unify", "fits", "to_display"]
 
 
 @dataclass(frozen=True)
@@ -91,6 +91,11 @@ def unify(a: Dim | None, b: Dim | None) -> tuple[bool, Dim | None]:
     if b is None or a == b:
         return True, a
     return False, None
+
+
+def to_display(unit: str, value: float) -> float:
+    """A value in SI units in its display unit: degrees for angles (``unit == "deg"``)."""
+    return float(math.degrees(value)) if unit == "deg" else float(value)
 
 
 def fits(dim: Dim | None, expected: Dim) -> bool:

@@ -53,3 +53,19 @@ def test_language_reference_has_an_example_for_every_statement():
     for function in ["translate", "rot_x", "rpy", "pose(", "axis_angle", "quat", "look_at", "sqrt", "atan2", "hypot"]:
         assert function in examples, function
     assert "## Errors" in text
+
+
+PY_DOCS = [p for p in DOCS if blocks(p, "python")]
+
+
+@pytest.mark.parametrize("doc", PY_DOCS, ids=[p.name for p in PY_DOCS])
+def test_python_examples_run(doc, tmp_path):
+    """A page's ```python blocks run in order, in one process, from the repository root."""
+    import subprocess
+    import sys
+
+    code = "\n\n".join(body for _, _, body in blocks(doc, "python"))
+    script = tmp_path / f"{doc.stem}_examples.py"
+    script.write_text(code, encoding="utf-8")
+    result = subprocess.run([sys.executable, str(script)], cwd=ROOT, capture_output=True, text=True, timeout=900)
+    assert result.returncode == 0, result.stderr[-4000:]

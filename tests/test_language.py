@@ -10,7 +10,7 @@ import pytest
 from mbcal import errors
 from mbcal.language import load_model, load_model_text
 from mbcal.language.parse import grammar_path, parse_text
-from mbcal.modeler import modeler
+from mbcal.modeling import modeler
 
 from conftest import MODELS
 

@@ -125,6 +125,15 @@ class Param(Statement):
 
 
 @dataclass(frozen=True)
+class Override(Statement):
+    """``override name = value [sigma s]``: a new nominal value for a parameter declared elsewhere."""
+
+    name: str = ""
+    value: Expr | None = None
+    sigma: Expr | None = None
+
+
+@dataclass(frozen=True)
 class Let(Statement):
     """``let name = expr``: a named expression, evaluated with the parameters."""
 

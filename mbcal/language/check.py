@@ -57,7 +57,7 @@ __all__ = ["check", "RESERVED"]
 RESERVED = frozenset(
     {
         "include", "param", "let", "template", "frame", "object", "link", "shape", "point",
-        "joint", "camera", "range", "target", "measure", "at", "in", "sigma", "per",
+        "joint", "camera", "range", "target", "measure", "override", "at", "in", "sigma", "per",
         "configuration", "pi", "world",
     }
 )  # fmt: skip
@@ -100,6 +100,7 @@ class _Scope:
     frame: int  # index of the frame statements attach to (-1: world)
     locals: dict[str, _Lazy] = field(default_factory=dict)
     local_spans: dict[str, SourceSpan] = field(default_factory=dict)
+    in_template: bool = False
 
     def join(self, name: str) -> str:
         return f"{self.path}.{name}" if self.path else name
@@ -128,6 +129,7 @@ class _Checker:
         self.measures: list[str] = []
         self.files: list[str] = [path]
         self.warnings: list[str] = []
+        self.overrides: dict[str, tuple[ast.Override, _Scope]] = {}
         self.global_scope = _Scope("", None, -1)
         self.instantiating: list[str] = []
         self.forcing: list[_Lazy] = []
@@ -181,7 +183,7 @@ class _Checker:
                 scope.local_spans[stmt.name] = stmt.name_span or stmt.span
             elif isinstance(stmt, ast.Frame):
                 index = self._new_frame(stmt.name, scope, stmt.pose, stmt.keyword, stmt.span, stmt.name_span)
-                child = _Scope(self.frames[index]["name"], scope, index)
+                child = _Scope(self.frames[index]["name"], scope, index, in_template=scope.in_template)
                 self.walk(stmt.body, child)
             elif isinstance(stmt, ast.Instance):
                 self._walk_instance(stmt, scope)
@@ -204,6 +206,15 @@ class _Checker:
                 index = self._new_frame(stmt.name, scope, stmt.pose, type(stmt).__name__.lower(), stmt.span,
                                         stmt.name_span)
                 self.deferred.append(_Deferred(stmt, scope, index, self.frames[index]["name"]))
+            elif isinstance(stmt, ast.Override):
+                if scope.path or scope.in_template:
+                    raise MdlError("'override' is written at the top level of a file, with the full parameter name",
+                                   stmt.span)
+                if stmt.name in self.overrides:
+                    first = self.overrides[stmt.name][0].span
+                    raise DuplicateNameError(f"'{stmt.name}' is already overridden at {first}",
+                                             stmt.name_span or stmt.span)
+                self.overrides[stmt.name] = (stmt, scope)
             elif isinstance(stmt, ast.Measure):
                 self.measures.extend(k for k in stmt.kinds if k not in self.measures)
             else:  # pragma: no cover - every statement type is handled above
@@ -252,7 +263,7 @@ class _Checker:
             raise MdlError(f"templates nested deeper than {MAX_TEMPLATE_DEPTH}", stmt.span)
         index = self._new_frame(stmt.name, scope, stmt.pose, stmt.keyword, stmt.span, stmt.name_span)
         full = self.frames[index]["name"]
-        inner = _Scope(full, self.global_scope, index)
+        inner = _Scope(full, self.global_scope, index, in_template=True)
         signature = [(p.name, p.default is None) for p in template.params]
         bound = _bind(f"template {template.name}", signature, stmt.args, stmt.kwargs, stmt.span)
         for p in template.params:
@@ -267,7 +278,7 @@ class _Checker:
         finally:
             self.instantiating.pop()
         if stmt.body:
-            self.walk(stmt.body, _Scope(full, scope, index))
+            self.walk(stmt.body, _Scope(full, scope, index, in_template=scope.in_template))
 
     # ---- names -----------------------------------------------------------------------------
 
@@ -378,10 +389,38 @@ class _Checker:
                 per_configuration=stmt.per_configuration,
                 dim=dim,
                 span=stmt.span,
+                value_span=stmt.value.span,
+                value_unit=_literal_unit(stmt.value),
+                editable=not decl.scope.in_template and stmt.index_range is None,
             )
             decl.node = ParamRef(kind=SCALAR, dim=dim, index=decl.index, name=decl.name)
         finally:
             decl.busy = False
+
+    def _apply_overrides(self) -> None:
+        from dataclasses import replace
+
+        for name, (stmt, scope) in self.overrides.items():
+            decl = self.params.get(name)
+            if decl is None:
+                raise UndefinedNameError(f"'override' of an undeclared parameter '{name}'", stmt.name_span or stmt.span,
+                                         hint=suggest(name, self.params))
+            info = decl.info
+            assert info is not None
+            value = self._constant(stmt.value, scope, f"the override of '{name}'")
+            if info.dim is not None and not fits(value.dim, info.dim):
+                raise UnitError(f"'{name}' is {describe(info.dim)}, the override is {describe(value.dim)}",
+                                stmt.value.span)
+            sigma = info.sigma
+            if stmt.sigma is not None:
+                s = self._constant(stmt.sigma, scope, f"the sigma of the override of '{name}'")
+                if info.dim is not None and not fits(s.dim, info.dim):
+                    raise UnitError(f"the sigma of '{name}' must be {describe(info.dim)}", stmt.sigma.span)
+                sigma = float(s.value)
+                if not sigma > 0:
+                    raise DimensionError(f"sigma must be positive, got {sigma:g}", stmt.sigma.span)
+            decl.info = replace(info, nominal=float(value.value), sigma=sigma, value_span=stmt.value.span,
+                                value_unit=_literal_unit(stmt.value), editable=True)
 
     def _constant(self, expr: ast.Expr, scope: _Scope, what: str) -> Const:
         node = self.compile(expr, scope)
@@ -540,6 +579,7 @@ class _Checker:
         self.walk(statements, self.global_scope)
         for decl in self.params.values():
             self._finish_param(decl)
+        self._apply_overrides()
         frames = []
         for i, f in enumerate(self.frames):
             pose = self._pose(f["pose"], f["scope"]) if f["pose"] is not None else None
@@ -784,6 +824,15 @@ class _Checker:
 
 
 # ---- helpers ----------------------------------------------------------------------------------
+
+
+def _literal_unit(expr: ast.Expr | None) -> str | None:
+    """The unit of a value written as a literal (``25 cm``, ``-5 deg``), else None."""
+    if isinstance(expr, ast.Unary) and expr.op == "-":
+        expr = expr.operand
+    if isinstance(expr, ast.Number):
+        return expr.unit
+    return None
 
 
 def _kind(node: Node) -> str:

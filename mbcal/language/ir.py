@@ -106,8 +106,10 @@ OPS: dict[str, Callable[..., Any]] = {
     "abs": lambda xp, a: xp.abs(a),
     "exp": lambda xp, a: xp.exp(a),
     "log": lambda xp, a: xp.log(a),
-    "min": lambda xp, *a: _reduce(xp.minimum, a),
-    "max": lambda xp, *a: _reduce(xp.maximum, a),
+    # By selection: the derivative of xp.minimum is found by an equality test that XLA's
+    # rounding can defeat inside jit (see mbcal.raycast).
+    "min": lambda xp, *a: _reduce(lambda u, v: xp.where(u <= v, u, v), a),
+    "max": lambda xp, *a: _reduce(lambda u, v: xp.where(u >= v, u, v), a),
     "hypot": lambda xp, a, b: xp.sqrt(a * a + b * b),
     "norm": _safe_norm,
     "dot": lambda xp, a, b: xp.sum(a * b),

@@ -2,7 +2,7 @@
 
 A :class:`Model` is what :func:`mbcal.load_model` returns.  It is immutable once built and
 is hashed by identity, so it can be a static argument of jitted functions.  Expressions are
-held as :mod:`mbcal.language.ir` graphs; :func:`mbcal.modeler.modeler` evaluates them.
+held as :mod:`mbcal.language.ir` graphs; :func:`mbcal.modeling.modeler` evaluates them.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import numpy as np
 
 from mbcal.errors import ParameterError, SourceSpan, UnknownNameError, suggest
 from mbcal.language.ir import Node
-from mbcal.units import Dim, describe
+from mbcal.units import Dim, describe, to_display
 
 __all__ = [
     "ParamInfo",
@@ -73,6 +73,9 @@ class ParamInfo:
     per_configuration: bool
     dim: Dim | None
     span: SourceSpan | None = field(default=None, repr=False)
+    value_span: SourceSpan | None = field(default=None, repr=False)
+    value_unit: str | None = None  # the unit the value was written in ("cm"), None for SI
+    editable: bool = False  # one statement declares it alone (no template, no index range)
 
     @property
     def unit(self) -> str:
@@ -85,7 +88,7 @@ class ParamInfo:
 
     def display(self, value: float) -> float:
         """``value`` (SI) in the display unit (degrees for angles)."""
-        return float(np.degrees(value)) if self.unit == "deg" else float(value)
+        return to_display(self.unit, value)
 
     def from_display(self, value: float) -> float:
         """A display-unit value back to SI."""
@@ -237,6 +240,18 @@ class Model:
                     table.setdefault(".".join(parts[k:]), []).append(full)
             self._suffixes[what] = table
         return self._suffixes[what]
+
+    def short_name(self, what: str, full: str) -> str:
+        """The shortest dotted suffix of ``full`` that still names it uniquely (for reports)."""
+        if what == "frame" and full == "world":
+            return full
+        parts = full.split(".")
+        table = self._suffix_table(what)
+        for k in range(len(parts) - 1, 0, -1):
+            suffix = ".".join(parts[k:])
+            if table.get(suffix) == [full] and suffix not in self._index[what]:
+                return suffix
+        return full
 
     def resolve(self, what: str, name: str) -> str:
         """The full name of a frame, point, camera, range sensor or shape given by a unique suffix."""

@@ -240,6 +240,12 @@ class _ToAst(Transformer):
             raise MdlSyntaxError(f"index range [{lo}..{hi}] is too long (at most 10000 entries)", span)
         return (lo, hi)
 
+    @v_args(meta=True)
+    def override(self, meta, children):
+        name, value, sigma = children
+        return ast.Override(span=self._span(meta), name_span=self._tspan(name), name=str(name), value=value,
+                            sigma=sigma)
+
     def param_range(self, children):
         return (children[0], children[1])
 

@@ -1,0 +1,1 @@
+"""Readers for standard reference data sets used to validate mbcal."""

@@ -1,0 +1,259 @@
+"""The built-in measurement models.
+
+They are registered through the ``mbcal.measurements`` entry-point group in mbcal's own
+``pyproject.toml``, exactly as a third-party plugin registers its models.
+
+========================  ===========================  ===================  ==========================
+kind                      refers to                    values               meaning
+========================  ===========================  ===================  ==========================
+``image_point``           camera, point                u, v (pixels)        projection (pinhole + OpenCV distortion)
+``point3d``               point, frame (world)         x, y, z (m)          a point's position in a frame
+``distance``              a, b (points)                value (m)            distance between two points
+``angle``                 a, b, c, d (points)          value (rad)          angle between a→b and c→d
+``range``                 sensor (range), data: ray    value (m)            distance along a ray to the first surface
+``point_to_surface``      object, frame; data: x y z   (0 implied, m)       distance of a measured point to a surface
+========================  ===========================  ===================  ==========================
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from mbcal._jax import jax, jnp
+from mbcal.camera import project_camera_points
+from mbcal.measurements import Batch, MeasurementModel, Role, frame_poses_with_world
+
+if TYPE_CHECKING:
+    from mbcal.scene import Scene
+
+Array = Any
+
+__all__ = ["ImagePoint", "Point3D", "Distance", "Angle", "Range", "PointToSurface", "BUILTINS"]
+
+
+def _points(scenes: Scene, batch: Batch, role: str) -> Array:
+    return scenes.points[batch.config, batch.refs[role]]
+
+
+def _frame_poses(scenes: Scene, batch: Batch, role: str) -> Array:
+    poses, world = frame_poses_with_world(scenes)
+    index = np.where(batch.refs[role] < 0, world, batch.refs[role])
+    return poses[batch.config, index]
+
+
+def _norm(v: Array) -> Array:
+    """Row norms of (n, 3) with a finite derivative at zero."""
+    sq = jnp.sum(v * v, axis=1)
+    return jnp.where(sq > 0, jnp.sqrt(jnp.where(sq > 0, sq, 1.0)), 0.0)
+
+
+def _to_camera(scenes: Scene, batch: Batch) -> tuple[Array, np.ndarray]:
+    cams = batch.refs["camera"]
+    frames = np.array([scenes.model.cameras[i].frame for i in cams], dtype=np.int64)
+    T = scenes.frame_poses[batch.config, frames]
+    p = _points(scenes, batch, "point")
+    return jnp.einsum("nji,nj->ni", T[:, :3, :3], p - T[:, :3, 3]), cams
+
+
+class ImagePoint(MeasurementModel):
+    """Pixel coordinates of a named point in a camera (OpenCV's pinhole and distortion model)."""
+
+    kind = "image_point"
+    roles = (Role("camera", "camera"), Role("point", "point"))
+    values = ("u", "v")
+    value_dimension = "pixel"
+    default_sigma = 1.0
+    description = "pixel coordinates (u, v) of a named point in a camera image"
+
+    def predict(self, scenes: Scene, batch: Batch) -> Array:
+        pc, cams = _to_camera(scenes, batch)
+        return project_camera_points(
+            pc, scenes.camera_intrinsics[batch.config, cams], scenes.camera_distortion[batch.config, cams]
+        )
+
+    def candidates(self, model, configurations):
+        return [
+            {"kind": self.kind, "camera": c.name, "point": p.name, "config": cfg}
+            for cfg in configurations
+            for c in model.cameras
+            for p in model.points
+        ]
+
+    def visible(self, scenes: Scene, batch: Batch) -> Array:
+        pc, cams = _to_camera(scenes, batch)
+        uv = self.predict(scenes, batch)
+        size = np.array([[scenes.model.cameras[i].width, scenes.model.cameras[i].height] for i in cams], dtype=float)
+        inside = (uv >= -0.5) & (uv <= size - 0.5)
+        return (pc[:, 2] > 1e-6) & jnp.all(inside, axis=1)
+
+
+class Point3D(MeasurementModel):
+    """A named point's position, in the world or in a given frame."""
+
+    kind = "point3d"
+    roles = (Role("point", "point"), Role("frame", "frame", default="world"))
+    values = ("x", "y", "z")
+    value_dimension = "length"
+    default_sigma = 1e-3
+    description = "3-D position (x, y, z) of a named point in a frame (default: world)"
+
+    def predict(self, scenes: Scene, batch: Batch) -> Array:
+        T = _frame_poses(scenes, batch, "frame")
+        p = _points(scenes, batch, "point")
+        return jnp.einsum("nji,nj->ni", T[:, :3, :3], p - T[:, :3, 3])
+
+    def candidates(self, model, configurations):
+        return [{"kind": self.kind, "point": p.name, "config": cfg} for cfg in configurations for p in model.points]
+
+
+class Distance(MeasurementModel):
+    """The distance between two named points."""
+
+    kind = "distance"
+    roles = (Role("a", "point"), Role("b", "point"))
+    values = ("value",)
+    value_dimension = "length"
+    default_sigma = 1e-3
+    description = "distance between points a and b"
+
+    def predict(self, scenes: Scene, batch: Batch) -> Array:
+        return _norm(_points(scenes, batch, "a") - _points(scenes, batch, "b"))[:, None]
+
+    def candidates(self, model, configurations):
+        names = [p.name for p in model.points]
+        if len(names) > 40:  # n² pairs: only for small models
+            return []
+        return [
+            {"kind": self.kind, "a": a, "b": b, "config": cfg}
+            for cfg in configurations
+            for i, a in enumerate(names)
+            for b in names[i + 1 :]
+        ]
+
+
+class Angle(MeasurementModel):
+    """The angle between the directions a→b and c→d."""
+
+    kind = "angle"
+    roles = (Role("a", "point"), Role("b", "point"), Role("c", "point"), Role("d", "point"))
+    values = ("value",)
+    value_dimension = "angle"
+    default_sigma = 1e-3
+    description = "angle between the directions a→b and c→d"
+
+    def predict(self, scenes: Scene, batch: Batch) -> Array:
+        u = _points(scenes, batch, "b") - _points(scenes, batch, "a")
+        v = _points(scenes, batch, "d") - _points(scenes, batch, "c")
+        return jnp.arctan2(_norm(jnp.cross(u, v)), jnp.sum(u * v, axis=1))[:, None]
+
+
+class Range(MeasurementModel):
+    """Distance along one ray of a range sensor to the first surface of the scene."""
+
+    kind = "range"
+    roles = (Role("sensor", "range"),)
+    values = ("value",)
+    data = ("ray",)
+    integer_data = ("ray",)
+    value_dimension = "length"
+    default_sigma = 1e-3
+    description = "distance along ray number 'ray' of a range sensor to the first surface it hits"
+
+    def check(self, model, refs, data):
+        n = len(model.ranges[refs["sensor"]].directions)
+        ray = int(data["ray"])
+        if not 0 <= ray < n:
+            return f"ray {ray} does not exist: range sensor '{model.ranges[refs['sensor']].name}' has rays 0..{n - 1}"
+        return None
+
+    def candidates(self, model, configurations):
+        out = []
+        for cfg in configurations:
+            for r in model.ranges:
+                step = max(1, len(r.directions) // 64)  # a sample of a dense grid is enough to rank
+                out.extend({"kind": self.kind, "sensor": r.name, "ray": k, "config": cfg}
+                           for k in range(0, len(r.directions), step))
+        return out
+
+    def _rays(self, scenes: Scene, batch: Batch) -> tuple[Array, Array, np.ndarray]:
+        model = scenes.model
+        sensors = batch.refs["sensor"]
+        rays = batch.data[:, 0].astype(np.int64)
+        frames = np.array([model.ranges[s].frame for s in sensors], dtype=np.int64)
+        local = np.stack([model.ranges[s].directions[r] for s, r in zip(sensors, rays)]) if len(batch) else np.zeros(
+            (0, 3)
+        )
+        T = scenes.frame_poses[batch.config, frames]
+        directions = jnp.einsum("nij,nj->ni", T[:, :3, :3], local)
+        max_range = np.array([model.ranges[s].max_range for s in sensors], dtype=float)
+        return T[:, :3, 3], directions, max_range
+
+    def predict(self, scenes: Scene, batch: Batch) -> Array:
+        from mbcal.raycast import cast_rays
+
+        origins, directions, max_range = self._rays(scenes, batch)
+        shapes = scenes.model.shapes
+        poses = scenes.shape_poses[batch.config]
+        dims = scenes.shape_dims[batch.config]
+
+        def one(P, D, o, d):
+            return cast_rays(P, D, shapes, o[None], d[None])[0]
+
+        t = jax.vmap(one)(poses, dims, origins, directions)
+        return jnp.where(t < max_range, t, max_range)[:, None]  # a miss reads the maximum range
+
+    def visible(self, scenes: Scene, batch: Batch) -> Array:
+        from mbcal.raycast import cast_rays
+
+        origins, directions, max_range = self._rays(scenes, batch)
+        shapes = scenes.model.shapes
+        t = jax.vmap(lambda P, D, o, d: cast_rays(P, D, shapes, o[None], d[None])[0])(
+            scenes.shape_poses[batch.config], scenes.shape_dims[batch.config], origins, directions
+        )
+        return t < max_range
+
+
+class PointToSurface(MeasurementModel):
+    """Distance of a measured 3-D point (a range sensor's point cloud) to a named object's surface.
+
+    The measured point (x, y, z) is given in ``frame`` (default: world); the object is a frame
+    whose shapes — and those of the frames under it — make the surface.  The measured value is
+    0: the point lies on the surface.
+    """
+
+    kind = "point_to_surface"
+    roles = (Role("object", "object"), Role("frame", "frame", default="world"))
+    values = ("distance",)
+    data = ("x", "y", "z")
+    value_dimension = "length"
+    implicit_value = 0.0
+    default_sigma = 1e-3
+    description = "distance of a measured point (x, y, z in 'frame') to the surface of 'object' (0 when it fits)"
+
+    def check(self, model, refs, data):
+        if not model.shapes_of(model.frames[refs["object"]].name):
+            return f"object '{model.frames[refs['object']].name}' has no shapes to measure a distance to"
+        return None
+
+    def predict(self, scenes: Scene, batch: Batch) -> Array:
+        from mbcal.raycast import distance_to_shapes
+
+        model = scenes.model
+        T = _frame_poses(scenes, batch, "frame")
+        p = jnp.einsum("nij,nj->ni", T[:, :3, :3], jnp.asarray(batch.data)) + T[:, :3, 3]
+        out = jnp.zeros(len(batch))
+        objects = batch.refs["object"]
+        for obj in np.unique(objects):
+            rows = np.nonzero(objects == obj)[0]
+            idx = np.asarray(model.shapes_of(model.frames[obj].name), dtype=np.int64)
+            shapes = [model.shapes[i] for i in idx]
+            poses = scenes.shape_poses[batch.config[rows]][:, idx]
+            dims = scenes.shape_dims[batch.config[rows]][:, idx]
+            d = jax.vmap(lambda P, D, q, s=shapes: distance_to_shapes(P, D, s, q[None])[0])(poses, dims, p[rows])
+            out = out.at[rows].set(d)
+        return out[:, None]
+
+
+BUILTINS: tuple[type[MeasurementModel], ...] = (ImagePoint, Point3D, Distance, Angle, Range, PointToSurface)

@@ -1,0 +1,415 @@
+"""Observability and uncertainty at a solution (seed 3.4, and beyond it).
+
+At x the whitened Jacobian J = W^½ ∂h/∂x says everything: its singular values give the rank and
+the condition number; the right singular vectors of the (numerically) zero singular values are
+the directions in parameter space that no measurement sees — named here in the user's
+parameter names; (JᵀJ)⁻¹ on the observable subspace is the covariance of the estimate.  Rank
+decisions are made on J with its columns scaled by each unknown's natural scale (half its
+search range, else its prior σ, else one SI unit or its nominal magnitude), so metres and
+radians, pixels and focal lengths are compared fairly.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from mbcal.units import to_display
+
+__all__ = [
+    "Combination",
+    "Observability",
+    "ObservabilityConfig",
+    "analyze",
+    "unknown_scales",
+    "PointUncertainty",
+    "point_uncertainty",
+]
+
+
+@dataclass(frozen=True)
+class ObservabilityConfig:
+    """Tolerances of the observability analysis.
+
+    Attributes
+    ----------
+    rtol : float
+        A scaled singular value below ``rtol · σ_max`` counts as zero (an unobservable direction).
+    weak : float
+        A direction is *weakly* observable when its standard deviation (in scaled units: a
+        fraction of the search half-range) exceeds this.
+    coefficient_tol : float
+        Coefficients below this fraction of the largest are left out of named combinations.
+    """
+
+    rtol: float = 1e-9
+    weak: float = 1.0
+    coefficient_tol: float = 0.05
+
+
+@dataclass(frozen=True)
+class Combination:
+    """A direction in parameter space, in the user's names and units.
+
+    ``coefficients[name]`` is how much the parameter changes (display units: m, deg, or plain)
+    when moving one unit along the direction; the largest magnitude is 1.
+    """
+
+    coefficients: dict[str, float]
+    units: dict[str, str]
+    sigma: float  # standard deviation along the direction (scaled units); inf if unobservable
+
+    @property
+    def names(self) -> list[str]:
+        return list(self.coefficients)
+
+    def describe(self) -> str:
+        """A sentence a user can act on."""
+        items = list(self.coefficients.items())
+        if len(items) == 1:
+            name = items[0][0]
+            return f"'{name}' cannot be determined: no measurement changes when it changes"
+        parts = []
+        for name, c in items:
+            unit = self.units.get(name, "")
+            parts.append(f"{name} by {c:+.3g}{(' ' + unit) if unit else ''}")
+        moved = ", ".join(parts[:-1]) + " and " + parts[-1]
+        if len(items) == 2:
+            (a, ca), (b, cb) = items
+            sign = "−" if ca * cb > 0 else "+"
+            ratio = abs(ca / cb) if cb else float("inf")
+            combo = f"{a} {sign} {ratio:.3g}·{b}" if abs(ratio - 1) > 1e-3 else f"{a} {sign} {b}"
+            return (
+                f"only one combination of '{a}' and '{b}' is observable: changing {moved} together leaves every "
+                f"prediction unchanged, so {combo} cannot be determined"
+            )
+        return f"changing {moved} together leaves every prediction unchanged"
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "coefficients": self.coefficients,
+            "units": self.units,
+            "description": self.describe(),
+        }
+
+
+@dataclass
+class Suggestion:
+    """A candidate measurement and what it would bring."""
+
+    record: dict[str, Any]
+    rank_gain: int
+    sigma_reduction: float  # relative reduction of the largest scaled σ (0..1)
+    text: str
+
+    def to_json(self) -> dict[str, Any]:
+        return {"measurement": self.record, "rank_gain": self.rank_gain, "sigma_reduction": self.sigma_reduction,
+                "description": self.text}
+
+
+@dataclass
+class Observability:
+    """Rank, condition, unobservable and weak directions, and the covariance of the unknowns."""
+
+    names: list[str]
+    units: dict[str, str]
+    scales: np.ndarray
+    singular_values: np.ndarray  # of the scaled measurement Jacobian
+    rank: int
+    rank_with_priors: int
+    condition: float
+    unobservable: list[Combination]
+    weak: list[Combination]
+    covariance: np.ndarray  # SI units; inf rows/columns for unobservable unknowns
+    std: np.ndarray
+    correlation: np.ndarray
+    chi2_scale: float = 1.0
+    suggestions: list[Suggestion] = field(default_factory=list)
+    null_space: np.ndarray | None = None  # (n, k) scaled
+
+    @property
+    def n(self) -> int:
+        return len(self.names)
+
+    @property
+    def observable(self) -> bool:
+        """True when the measurements alone determine every unknown."""
+        return self.rank == self.n
+
+    @property
+    def observable_with_priors(self) -> bool:
+        return self.rank_with_priors == self.n
+
+    def verdict(self) -> str:
+        if self.observable:
+            text = f"observable: rank {self.rank} of {self.n}, condition number {self.condition:.3g}"
+            if self.weak:
+                text += f"; {len(self.weak)} weakly observable direction(s)"
+            return text
+        text = f"NOT observable: rank {self.rank} of {self.n} ({self.n - self.rank} unobservable direction(s))"
+        if self.observable_with_priors:
+            text += "; the priors (sigma) make the estimate determined"
+        return text
+
+
+def unknown_scales(params) -> np.ndarray:
+    """Each unknown's natural scale: half its search range, else its prior σ, else max(1, |nominal|)."""
+    lo, hi, sig, x0 = params.lower, params.upper, params.prior_sigma, params.x0
+    scale = np.where(np.isfinite(lo) & np.isfinite(hi) & (hi > lo), (hi - lo) / 2.0, np.nan)
+    scale = np.where(np.isnan(scale) & np.isfinite(sig), sig, scale)
+    scale = np.where(np.isnan(scale), np.maximum(1.0, np.abs(x0)), scale)
+    return scale
+
+
+def _sparse_basis(N: np.ndarray) -> np.ndarray:
+    """A basis of span(N) (n, k) with as many zeros as reduced row echelon form gives."""
+    if N.shape[1] == 0:
+        return N
+    A = N.T.copy()  # (k, n)
+    k, n = A.shape
+    row = 0
+    for col in range(n):
+        if row >= k:
+            break
+        pivot = row + int(np.argmax(np.abs(A[row:, col])))
+        if abs(A[pivot, col]) < 1e-10:
+            continue
+        A[[row, pivot]] = A[[pivot, row]]
+        A[row] /= A[row, col]
+        for r in range(k):
+            if r != row:
+                A[r] -= A[r, col] * A[row]
+        row += 1
+    A[np.abs(A) < 1e-12] = 0.0
+    return A.T
+
+
+def _combination(d_scaled: np.ndarray, names, units, scales, sigma: float, tol: float) -> Combination:
+    d = d_scaled * scales  # SI change per unit along the direction
+    shown = np.array([to_display(units.get(n, ""), v) for n, v in zip(names, d)])
+    big = np.max(np.abs(shown)) if shown.size else 1.0
+    big = big if big > 0 else 1.0
+    coefficients = {}
+    for n, v, ds in zip(names, shown / big, d_scaled / max(np.max(np.abs(d_scaled)), 1e-300)):
+        if abs(ds) >= tol:
+            coefficients[n] = float(v)
+    return Combination(coefficients, {n: units.get(n, "") for n in coefficients}, sigma)
+
+
+def _spectrum(J: np.ndarray, n: int, rtol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Singular values (n,) padded with zeros, right singular vectors (n, n) as columns, and
+    the mask of those above ``rtol · σ_max``."""
+    if J.shape[0] == 0:
+        return np.zeros(n), np.eye(n), np.zeros(n, dtype=bool)
+    _, sv, Vt = np.linalg.svd(J, full_matrices=True)
+    full = np.zeros(n)
+    full[: len(sv)] = sv[:n]
+    smax = full.max() if n else 0.0
+    return full, Vt.T, (full > rtol * smax) if smax > 0 else np.zeros(n, dtype=bool)
+
+
+def analyze(
+    J_measurements: np.ndarray,
+    J_priors: np.ndarray | None,
+    names: Sequence[str],
+    units: dict[str, str],
+    scales: np.ndarray,
+    *,
+    config: ObservabilityConfig | None = None,
+    chi2_scale: float = 1.0,
+) -> Observability:
+    """Observability and covariance from whitened Jacobians.
+
+    Parameters
+    ----------
+    J_measurements : (m, n)
+        Whitened Jacobian of the measurements.
+    J_priors : (p, n) or None
+        Whitened Jacobian of the prior rows.
+    names, units, scales
+        The unknowns, their display units and natural scales.
+    chi2_scale : float
+        Multiply the covariance by this (the reduced χ², when asked to).
+    """
+    config = config or ObservabilityConfig()
+    n = len(names)
+    S = np.asarray(scales, dtype=float)
+    Js = np.asarray(J_measurements, dtype=float) * S
+    full_sv, V, observable_mask = _spectrum(Js, n, config.rtol)
+    smax = full_sv.max() if n else 0.0
+    rank = int(observable_mask.sum())
+    condition = float(smax / full_sv[observable_mask].min()) if rank else float("inf")
+    null = V[:, ~observable_mask]
+
+    # The covariance uses the priors as well.
+    Jt = Js if J_priors is None or len(J_priors) == 0 else np.vstack([Js, np.asarray(J_priors) * S])
+    svt_full, Vt_full, keep = _spectrum(Jt, n, config.rtol)
+    rank_t = int(keep.sum())
+    Vk = Vt_full[:, keep]
+    cov_s = (Vk / svt_full[keep] ** 2) @ Vk.T * chi2_scale
+    null_t = Vt_full[:, ~keep]
+    in_null = np.sum(null_t**2, axis=1) > 1e-12 if null_t.size else np.zeros(n, dtype=bool)
+    cov = cov_s * np.outer(S, S)
+    cov[in_null, :] = np.inf
+    cov[:, in_null] = np.inf
+    std = np.sqrt(np.where(np.isfinite(np.diag(cov)), np.diag(cov), np.inf))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov / np.outer(std, std)
+    corr[~np.isfinite(corr)] = np.nan
+    np.fill_diagonal(corr, np.where(np.isfinite(std), 1.0, np.nan))
+
+    unobservable = [
+        _combination(v, names, units, S, float("inf"), config.coefficient_tol) for v in _sparse_basis(null).T
+    ]
+    weak = []
+    for i in np.nonzero(observable_mask)[0]:
+        sigma_dir = 1.0 / full_sv[i] * np.sqrt(chi2_scale)
+        if sigma_dir > config.weak:
+            weak.append(_combination(V[:, i], names, units, S, float(sigma_dir), config.coefficient_tol))
+    return Observability(
+        names=list(names),
+        units=units,
+        scales=S,
+        singular_values=full_sv,
+        rank=rank,
+        rank_with_priors=rank_t,
+        condition=condition,
+        unobservable=unobservable,
+        weak=weak,
+        covariance=cov,
+        std=std,
+        correlation=corr,
+        chi2_scale=chi2_scale,
+        null_space=null,
+    )
+
+
+def rank_candidates(
+    obs: Observability,
+    J_measurements: np.ndarray,
+    J_priors: np.ndarray | None,
+    candidates: Sequence[tuple[dict[str, Any], np.ndarray]],
+    *,
+    top: int = 10,
+) -> list[Suggestion]:
+    """Rank candidate measurements by how much they raise the rank, then shrink the worst σ.
+
+    ``candidates`` holds (record, whitened Jacobian rows (s, n)) pairs.
+    """
+    S = obs.scales
+    Js = np.asarray(J_measurements) * S
+    P = np.asarray(J_priors) * S if J_priors is not None and len(J_priors) else np.zeros((0, len(S)))
+    info = Js.T @ Js + P.T @ P
+    null = obs.null_space if obs.null_space is not None else np.zeros((len(S), 0))
+    base_worst = _worst_sigma(info, null)
+    scored = []
+    for record, rows in candidates:
+        R = np.atleast_2d(rows) * S
+        norm = np.linalg.norm(R)
+        if not np.isfinite(norm) or norm == 0:
+            continue
+        gain = 0
+        if null.shape[1]:
+            sv = np.linalg.svd(R @ null, compute_uv=False)
+            gain = int(np.sum(sv > 1e-6 * norm))
+        new_null = null
+        if gain:
+            # The directions of the null space the candidate does not see stay unobservable.
+            _, sv2, vt = np.linalg.svd(R @ null)
+            seen = np.zeros(null.shape[1], dtype=bool)
+            seen[: len(sv2)] = sv2 > 1e-6 * norm
+            new_null = null @ vt.T[:, ~seen]
+        worst = _worst_sigma(info + R.T @ R, new_null)
+        reduction = 0.0 if not np.isfinite(base_worst) or base_worst == 0 else max(0.0, 1.0 - worst / base_worst)
+        scored.append((gain, reduction, record))
+    scored.sort(key=lambda t: (-t[0], -t[1]))
+    out = []
+    for gain, reduction, record in scored[:top]:
+        what = ", ".join(f"{k} {v}" for k, v in record.items() if k not in ("kind", "sigma"))
+        text = f"{record['kind']}: {what}"
+        if gain:
+            text += f" — raises the rank by {gain}"
+        if reduction > 0:
+            text += f" — largest σ −{100 * reduction:.0f} %"
+        out.append(Suggestion(record, gain, reduction, text))
+    return out
+
+
+def _worst_sigma(info: np.ndarray, null: np.ndarray) -> float:
+    """The largest σ (scaled) over the observable subspace of an information matrix."""
+    n = info.shape[0]
+    if null.shape[1]:
+        # Project out the unobservable directions.
+        Q, _ = np.linalg.qr(null)
+        Pp = np.eye(n) - Q @ Q.T
+        info = Pp @ info @ Pp
+    w = np.linalg.eigvalsh(info)
+    positive = w[w > 1e-12 * max(w.max(), 1e-300)]
+    if positive.size == 0:
+        return float("inf")
+    return float(1.0 / np.sqrt(positive.min()))
+
+
+@dataclass(frozen=True)
+class PointUncertainty:
+    """Uncertainty of a named point's position, split along and across a line of sight."""
+
+    point: str
+    configuration: str
+    camera: str | None
+    position: np.ndarray  # world (m)
+    covariance: np.ndarray  # (3, 3) m²
+    parallel: float  # σ along the line of sight (m)
+    perpendicular: float  # largest σ across it (m)
+
+    @property
+    def total(self) -> float:
+        return float(np.sqrt(np.trace(self.covariance))) if np.all(np.isfinite(self.covariance)) else float("inf")
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "point": self.point,
+            "configuration": self.configuration,
+            "camera": self.camera,
+            "position": [float(v) for v in self.position],
+            "sigma_parallel": _finite_or_none(self.parallel),
+            "sigma_perpendicular": _finite_or_none(self.perpendicular),
+            "sigma_total": _finite_or_none(self.total),
+        }
+
+
+def _finite_or_none(v: float) -> float | None:
+    return float(v) if np.isfinite(v) else None
+
+
+def split_line_of_sight(cov: np.ndarray, position: np.ndarray, eye: np.ndarray | None) -> tuple[float, float]:
+    """(σ∥, σ⟂max) of a 3×3 covariance relative to the line from ``eye`` to ``position``."""
+    if not np.all(np.isfinite(cov)):
+        return float("inf"), float("inf")
+    if eye is None:
+        w = np.linalg.eigvalsh(cov)
+        return float("nan"), float(np.sqrt(max(w.max(), 0.0)))
+    u = position - eye
+    u = u / np.linalg.norm(u)
+    par = float(np.sqrt(max(u @ cov @ u, 0.0)))
+    P = np.eye(3) - np.outer(u, u)
+    perp = float(np.sqrt(max(np.linalg.eigvalsh(P @ cov @ P).max(), 0.0)))
+    return par, perp
+
+
+def point_uncertainty(
+    name: str, configuration: str, camera: str | None, position: np.ndarray, J_point: np.ndarray,
+    covariance: np.ndarray, eye: np.ndarray | None,
+) -> PointUncertainty:
+    """Propagate the unknowns' covariance to a point (J_point: (3, n) ∂p/∂x)."""
+    used = np.any(J_point != 0, axis=0)
+    if np.any(~np.isfinite(covariance[np.ix_(used, used)])):
+        cov = np.full((3, 3), np.inf)
+    else:
+        Ju = J_point[:, used]
+        cov = Ju @ covariance[np.ix_(used, used)] @ Ju.T
+    par, perp = split_line_of_sight(cov, position, eye)
+    return PointUncertainty(name, configuration, camera, position, cov, par, perp)

@@ -1,0 +1,269 @@
+"""Calibration and plan reports: text tables for people, JSON for programs (docs/report.md)."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from mbcal.report import fmt, table
+from mbcal.units import to_display
+
+if TYPE_CHECKING:
+    from mbcal.api import CalibrationResult, PlanAnalysis
+
+__all__ = ["result_json", "result_text", "plan_json", "plan_text", "REPORT_FORMAT"]
+
+REPORT_FORMAT = "mbcal-report-1"
+
+
+def _num(v: float) -> float | None:
+    """JSON has no inf/NaN: they become null (and the report says why)."""
+    return float(v) if v is not None and np.isfinite(v) else None
+
+
+def _parameters_json(names, units, x, x0, std) -> dict[str, Any]:
+    out = {}
+    for i, name in enumerate(names):
+        unit = units[name]
+        entry = {
+            "value": float(x[i]),
+            "std": _num(std[i]),
+            "initial": float(x0[i]) if x0 is not None else None,
+            "unit": "rad" if unit == "deg" else unit,
+            "observable": bool(np.isfinite(std[i])),
+        }
+        if unit == "deg":
+            entry["display"] = {"unit": "deg", "value": to_display(unit, x[i]), "std": _num(to_display(unit, std[i]))}
+        out[name] = entry
+    return out
+
+
+def _observability_json(obs) -> dict[str, Any]:
+    return {
+        "observable": obs.observable,
+        "observable_with_priors": obs.observable_with_priors,
+        "rank": obs.rank,
+        "unknowns": obs.n,
+        "condition_number": _num(obs.condition),
+        "singular_values": [float(s) for s in obs.singular_values],
+        "unobservable": [c.to_json() for c in obs.unobservable],
+        "weak": [{**c.to_json(), "sigma_scaled": _num(c.sigma)} for c in obs.weak],
+        "suggestions": [s.to_json() for s in obs.suggestions],
+        "verdict": obs.verdict(),
+    }
+
+
+def _covariance_json(names, cov, corr) -> dict[str, Any]:
+    return {
+        "names": list(names),
+        "covariance": [[_num(v) for v in row] for row in cov],
+        "correlation": [[_num(v) for v in row] for row in corr],
+    }
+
+
+def result_json(r: CalibrationResult) -> dict[str, Any]:
+    """The calibration report as JSON-ready data."""
+    units = {n: r.unit(n) for n in r.names}
+    solver = r.solver
+    status = "converged" if r.converged else ("failed" if solver.best < 0 else "not_converged")
+    statuses = solver.statuses()
+    return {
+        "format": REPORT_FORMAT,
+        "status": status,
+        "message": r.status.message,
+        "ok": r.ok,
+        "model": r.problem.model.path,
+        "measurements": r.problem.measurements.path,
+        "cost": float(r.cost),
+        "rms": {k: float(v) for k, v in r.rms.items()},
+        "rms_normalized": float(np.sqrt(r.cost / max(r.problem.n_residuals, 1))),
+        "reduced_chi2": _num(r.reduced_chi2),
+        "dof": r.dof,
+        "n_measurements": len(r.problem.measurements),
+        "n_residuals": r.problem.n_residuals,
+        "parameters": _parameters_json(r.names, units, r.x, r.x_initial, r.observability.std),
+        "observable": r.observable,
+        "rank": r.observability.rank,
+        "unobservable": [c.to_json() for c in r.observability.unobservable],
+        "observability": _observability_json(r.observability),
+        "covariance": _covariance_json(r.names, r.covariance, r.correlation),
+        "restarts": {
+            "count": int(len(solver.cost)),
+            "converged": int(np.sum(solver.converged)),
+            "best": int(solver.best),
+            "seed": r.info.get("seed"),
+            "runs": [
+                {
+                    "index": i,
+                    "status": statuses[i].label,
+                    "cost": _num(solver.cost[i]),
+                    "iterations": int(solver.iterations[i]),
+                    "initial": [float(v) for v in solver.x0[i]],
+                    "final": [float(v) for v in solver.x[i]],
+                }
+                for i in range(len(solver.cost))
+            ],
+        },
+        "residuals": [row.to_json() for row in r.residuals],
+        "outliers": {"threshold": r.outlier_threshold, "ids": [row.id for row in r.outliers]},
+        "points": [p.to_json() for p in r.points],
+        "solver": {
+            "loss": solver.config.loss,
+            "loss_scale": solver.config.loss_scale,
+            "max_iterations": solver.config.max_iterations,
+            "ftol": solver.config.ftol,
+            "xtol": solver.config.xtol,
+            "gtol": solver.config.gtol,
+        },
+        "elapsed_s": float(r.elapsed),
+    }
+
+
+def _value_cell(unit: str, v: float) -> str:
+    if not np.isfinite(v):
+        return "unobservable"
+    return f"{fmt(to_display(unit, v), 7)} {unit}".rstrip()
+
+
+def _std_cell(unit: str, v: float) -> str:
+    if not np.isfinite(v):
+        return "∞ (unobservable)"
+    return f"{fmt(to_display(unit, v), 3)} {unit}".rstrip()
+
+
+def _observability_text(obs) -> list[str]:
+    out = ["", f"observability: {obs.verdict()}"]
+    for c in obs.unobservable:
+        out.append(f"  - {c.describe()}")
+    for c in obs.weak:
+        names = ", ".join(c.names)
+        out.append(f"  - weakly observable ({names}): σ along this direction is {c.sigma:.2g} × the search range")
+    if obs.suggestions:
+        out.append("  measurements that would help most:")
+        for s in obs.suggestions:
+            out.append(f"    · {s.text}")
+    elif not obs.observable:
+        out.append(
+            "  no single additional measurement in these configurations helps: measure in another configuration "
+            "(attitude, view), or fix the parameters named above to known values"
+        )
+    return out
+
+
+def _points_text(points, model) -> list[str]:
+    if not points:
+        return []
+    rows = []
+    for p in points[:40]:
+        rows.append([
+            model.short_name("point", p.point),
+            p.configuration,
+            model.short_name("camera", p.camera) if p.camera else "—",
+            "∞" if not np.isfinite(p.perpendicular) else f"{1000 * p.perpendicular:.3g}",
+            "∞" if not np.isfinite(p.parallel) else f"{1000 * p.parallel:.3g}",
+        ])
+    text = table(["point", "config", "line of sight", "σ⟂ (mm)", "σ∥ (mm)"], rows, align="lllrr",
+                 title="\nposition uncertainty of the points (⟂ and ∥ to the camera's line of sight):")
+    extra = [f"… {len(points) - 40} more points in the JSON report"] if len(points) > 40 else []
+    return [text, *extra]
+
+
+def _roles(kind: str):
+    from mbcal.measurements import get_model
+
+    return get_model(kind).roles
+
+
+def _short(model, lookup: str, name: str) -> str:
+    table = "frame" if lookup == "object" else lookup
+    try:
+        return model.short_name(table, name)
+    except KeyError:
+        return name
+
+
+def result_text(r: CalibrationResult, *, max_residuals: int = 15) -> str:
+    """The calibration report as text."""
+    out = []
+    solver = r.solver
+    head = "converged" if r.converged else "NOT converged"
+    out.append(f"{head}: {r.status.message}")
+    rms = ", ".join(
+        f"{k} {v:.4g} {'px' if k == 'image_point' else ('rad' if k == 'angle' else 'm')}" for k, v in r.rms.items()
+    )
+    out.append(
+        f"S = {r.cost:.6g} over {r.problem.n_residuals} residuals ({len(r.problem.measurements)} measurements); "
+        f"reduced χ² = {fmt(r.reduced_chi2, 4)}; RMS: {rms}"
+    )
+    rows = []
+    for i, name in enumerate(r.names):
+        unit = r.unit(name)
+        rows.append([name, _value_cell(unit, r.x[i]), _std_cell(unit, r.observability.std[i]),
+                     _value_cell(unit, r.x_initial[i])])
+    out.append("")
+    out.append(table(["parameter", "estimate", "σ", "initial"], rows, align="lrrr"))
+    out.extend(_observability_text(r.observability))
+    out.extend(_points_text(r.points, r.problem.model))
+    worst = sorted(r.residuals, key=lambda row: -row.normalized)
+    res_rows = []
+    model = r.problem.model
+    roles = {role.name: role.lookup for kind in {row.kind for row in worst} for role in _roles(kind)}
+    for row in worst[:max_residuals]:
+        refs = " ".join(_short(model, roles.get(k, ""), str(v)) for k, v in row.refs.items())
+        res_rows.append([row.id, row.kind, row.config, refs,
+                         " ".join(f"{v:+.3g}" for v in row.residual), f"{row.normalized:.3g}"])
+    out.append("")
+    out.append(table(["id", "kind", "config", "refers to", "residual", "|r|/σ"], res_rows, align="llllrr",
+                     title=f"residuals, worst first ({len(r.residuals)} in all):"))
+    if r.outliers:
+        out.append(f"{len(r.outliers)} outlier(s) above {r.outlier_threshold:g}σ: "
+                   + ", ".join(row.id for row in r.outliers[:10]) + (" …" if len(r.outliers) > 10 else ""))
+    counts: dict[str, int] = {}
+    for s in solver.statuses():
+        counts[s.label] = counts.get(s.label, 0) + 1
+    summary = ", ".join(f"{v} {k}" for k, v in sorted(counts.items(), key=lambda t: -t[1]))
+    finite = solver.cost[np.isfinite(solver.cost)]
+    same = int(np.sum(np.abs(finite - r.cost) <= 1e-6 * max(r.cost, 1e-12))) if finite.size else 0
+    out.append("")
+    out.append(
+        f"restarts: {len(solver.cost)} ({summary}); best #{solver.best}; {same} reached the best S; "
+        f"solved in {r.elapsed:.2f} s"
+    )
+    return "\n".join(out)
+
+
+def plan_json(a: PlanAnalysis) -> dict[str, Any]:
+    units = {n: a.problem.params.info(n).unit for n in a.names}
+    return {
+        "format": REPORT_FORMAT,
+        "kind": "plan",
+        "model": a.problem.model.path,
+        "plan": a.problem.measurements.path,
+        "n_measurements": len(a.problem.measurements),
+        "invisible": a.invisible,
+        "parameters": _parameters_json(a.names, units, a.x, None, a.observability.std),
+        "observable": a.observability.observable_with_priors,
+        "rank": a.observability.rank,
+        "unobservable": [c.to_json() for c in a.observability.unobservable],
+        "observability": _observability_json(a.observability),
+        "covariance": _covariance_json(a.names, a.observability.covariance, a.observability.correlation),
+        "points": [p.to_json() for p in a.points],
+    }
+
+
+def plan_text(a: PlanAnalysis) -> str:
+    out = [f"plan: {len(a.problem.measurements)} measurements, {a.problem.size} values, "
+           f"{len(a.names)} unknowns"]
+    if a.invisible:
+        out.append(f"warning: {len(a.invisible)} planned measurement(s) cannot be made at these values "
+                   f"(not counted): {', '.join(a.invisible[:8])}{' …' if len(a.invisible) > 8 else ''}")
+    rows = []
+    for i, name in enumerate(a.names):
+        unit = a.problem.params.info(name).unit
+        rows.append([name, _value_cell(unit, a.x[i]), _std_cell(unit, a.observability.std[i])])
+    out.append("")
+    out.append(table(["parameter", "at", "expected σ"], rows, align="lrr"))
+    out.extend(_observability_text(a.observability))
+    out.extend(_points_text(a.points, a.problem.model))
+    return "\n".join(out)

@@ -1,0 +1,268 @@
+"""Calibration end to end through the library API: simulated measurements → estimates within 3σ."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+import mbcal
+from mbcal.errors import SolverError
+from mbcal.problem import Problem
+
+from conftest import MEASUREMENTS, MODELS
+
+ROOM_TRUTH = {
+    "room.x": 0.02,
+    "room.y": 0.05,
+    "room.z": 0.015,
+    "room.roll": math.radians(0.8),
+    "room.pitch": math.radians(-1.0),
+    "room.yaw": math.radians(1.2),
+}
+
+
+@pytest.fixture(scope="module")
+def room():
+    return mbcal.load_model(MODELS / "teleexistence.mdl")
+
+
+@pytest.fixture(scope="module")
+def arm():
+    return mbcal.load_model(MODELS / "arm7.mdl")
+
+
+@pytest.fixture(scope="module")
+def room_data(room):
+    plan = mbcal.read_measurements(MEASUREMENTS / "room_plan.csv", room)
+    return mbcal.simulate(room, plan, ROOM_TRUTH, noise=1.0, seed=11)
+
+
+@pytest.fixture(scope="module")
+def room_result(room, room_data):
+    return mbcal.calibrate(room, room_data, ["room.*"], restarts=16, seed=0)
+
+
+def assert_within_3_sigma(result, truth):
+    for name, true in truth.items():
+        err = result.values[name] - true
+        assert abs(err) <= 3 * result.std[name], f"{name}: error {err:.3g}, σ {result.std[name]:.3g}"
+
+
+def test_room_pose_is_recovered_from_24_stereo_points(room_result):
+    assert room_result.ok
+    assert room_result.observability.rank == 6
+    assert_within_3_sigma(room_result, ROOM_TRUTH)
+    assert 0.5 < room_result.reduced_chi2 < 1.6  # the σ of 1 px is right
+    assert room_result.rms["image_point"] < 2.0
+
+
+def test_stereo_depth_is_the_least_certain_direction(room_result):
+    lever = [p for p in room_result.points if p.point.endswith("lever.tip")]
+    assert lever and all(p.parallel > p.perpendicular for p in lever)
+
+
+def test_arm_joint_offsets_are_recovered_over_ten_attitudes(arm):
+    plan = mbcal.read_measurements(MEASUREMENTS / "arm_plan.json", arm)
+    rng = np.random.default_rng(7)
+    truth = {f"arm.offset{i}": math.radians(rng.uniform(-6, 6)) for i in range(1, 8)}
+    data = mbcal.simulate(arm, plan, truth, noise=1.0, seed=3)
+    result = mbcal.calibrate(arm, data, ["arm.offset*"], restarts=16, seed=1)
+    assert result.ok and len(result.residuals) == 84
+    assert_within_3_sigma(result, truth)
+
+
+def test_lever_angle_is_recovered_from_its_points(room):
+    plan = mbcal.measurements_from_records(
+        [{"kind": "image_point", "camera": cam, "point": f"lever.{p}", "sigma": 0.5}
+         for cam in ("eyes.left", "eyes.right") for p in ("tip", "knob_front", "middle")],
+        room,
+    )
+    truth = {"lever.angle": math.radians(33.0)}
+    data = mbcal.simulate(room, plan, truth, seed=5)
+    result = mbcal.calibrate(room, data, ["lever.angle"], restarts=8)
+    assert_within_3_sigma(result, truth)
+    assert result.std["lever.angle"] < math.radians(0.5)
+
+
+INTRINSICS_MODEL = """
+param cam.fx = 800 in [700, 900]
+param cam.fy = 800 in [700, 900]
+param cam.cx = 320 in [280, 360]
+param cam.cy = 240 in [200, 280]
+param cam.k1 = 0 in [-0.3, 0.3]
+param board.yaw = 0 deg per configuration
+param board.tilt = 0 deg per configuration
+camera cam(width = 640, height = 480, fx = cam.fx, fy = cam.fy, cx = cam.cx, cy = cam.cy, k1 = cam.k1)
+frame stand at (0, 0, 1 m) * rot_y(board.yaw) * rot_x(board.tilt) {
+  target board = grid(rows = 7, cols = 9, dx = 5 cm) at (-20 cm, -15 cm, 0)
+}
+"""
+
+
+def test_camera_intrinsics_are_recovered_from_a_target_in_known_poses():
+    model = mbcal.load_model_text(INTRINSICS_MODEL)
+    poses = {"v1": (0, 0), "v2": (25, 0), "v3": (-25, 10), "v4": (0, -30), "v5": (15, 25)}
+    configurations = {v: {"board.yaw": f"{a} deg", "board.tilt": f"{b} deg"} for v, (a, b) in poses.items()}
+    records = [{"kind": "image_point", "config": v, "camera": "cam", "point": p.name, "sigma": 0.3}
+               for v in poses for p in model.points]
+    plan = mbcal.measurements_from_records(records, model, configurations=configurations)
+    truth = {"cam.fx": 812.0, "cam.fy": 806.0, "cam.cx": 331.0, "cam.cy": 236.0, "cam.k1": -0.12}
+    data = mbcal.simulate(model, plan, truth, seed=9)
+    result = mbcal.calibrate(model, data, ["cam.*"], restarts=8)
+    assert result.ok
+    assert_within_3_sigma(result, truth)
+
+
+def test_an_unobservable_combination_is_named_in_the_users_terms(room, room_data):
+    result = mbcal.calibrate(room, room_data, ["room.x", "robot.x", "room.y", "room.z"], restarts=4)
+    obs = result.observability
+    assert not obs.observable and obs.rank == 3
+    (combo,) = obs.unobservable
+    assert set(combo.names) == {"room.x", "robot.x"}
+    assert combo.coefficients["room.x"] == pytest.approx(combo.coefficients["robot.x"])
+    text = combo.describe()
+    assert "room.x" in text and "robot.x" in text and "cannot be determined" in text
+    # Rank-deficient covariance: no crash, σ = ∞ exactly where unobservable, finite elsewhere.
+    assert math.isinf(result.std["room.x"]) and math.isinf(result.std["robot.x"])
+    assert math.isfinite(result.std["room.y"]) and math.isfinite(result.std["room.z"])
+    assert not result.ok
+    report = json.dumps(result.to_json(), allow_nan=False)  # no NaN or ∞ in the JSON report
+    assert "unobservable" in report
+    assert "cannot be determined" in result.summary()
+
+
+def test_a_parameter_no_measurement_depends_on_is_reported_alone(room, room_data):
+    no_fan = room_data.subset(["fan" not in m.refs["point"] for m in room_data])
+    result = mbcal.calibrate(room, no_fan, ["room.x", "fan.angle"], restarts=2)
+    (combo,) = result.observability.unobservable
+    assert combo.names == ["fan.angle"]
+    assert combo.describe() == "'fan.angle' cannot be determined: no measurement changes when it changes"
+    assert math.isinf(result.std["fan.angle"]) and math.isfinite(result.std["room.x"])
+
+
+def test_suggestions_rank_measurements_that_raise_the_rank(room):
+    plan = mbcal.measurements_from_records(
+        [{"kind": "image_point", "camera": "eyes.left", "point": p, "sigma": 1} for p in ("lever.hub", "lever.tip")],
+        room,
+    )
+    analysis = mbcal.observe(room, plan, ["room.*"])
+    obs = analysis.observability
+    assert obs.rank == 4 and len(obs.unobservable) == 2
+    assert obs.suggestions and obs.suggestions[0].rank_gain >= 1
+    assert "image_point" in obs.suggestions[0].text
+
+
+def test_priors_determine_what_the_measurements_cannot(room, room_data):
+    text = (MODELS / "teleexistence.mdl").read_text().replace("param robot.x   = 0 m", "param robot.x = 0 m sigma 5 mm")
+    model = mbcal.load_model_text(text, str(MODELS / "prior_copy.mdl"))
+    result = mbcal.calibrate(model, room_data, ["room.x", "robot.x"], restarts=2)
+    assert not result.observability.observable
+    assert result.observability.observable_with_priors
+    assert math.isfinite(result.std["room.x"])
+
+
+def test_autodiff_jacobian_matches_finite_differences(arm):
+    plan = mbcal.read_measurements(MEASUREMENTS / "arm_plan.json", arm)
+    data = mbcal.simulate(arm, plan, {"arm.offset2": 0.05}, seed=1)
+    problem = Problem(arm, data, ["arm.offset*", "torso.q@pose03"])
+    x = problem.params.x0 + np.random.default_rng(0).normal(0, 0.03, problem.params.size)
+    J = problem.jacobian(x)
+    h = 1e-6
+    fd = np.stack([(problem.residual(x + h * e) - problem.residual(x - h * e)) / (2 * h)
+                   for e in np.eye(len(x))], axis=1)
+    np.testing.assert_allclose(J, fd, rtol=1e-5, atol=1e-4)
+
+
+def test_calibration_is_reproducible_for_a_seed(room, room_data):
+    a = mbcal.calibrate(room, room_data, ["room.*"], restarts=6, seed=42)
+    b = mbcal.calibrate(room, room_data, ["room.*"], restarts=6, seed=42)
+    assert a.x.tobytes() == b.x.tobytes()
+    np.testing.assert_array_equal(a.solver.x0, b.solver.x0)
+
+
+def test_simulate_without_noise_reproduces_the_model(room):
+    plan = mbcal.read_measurements(MEASUREMENTS / "room_plan.csv", room)
+    data = mbcal.simulate(room, plan, ROOM_TRUTH, noise=0.0)
+    problem = Problem(room, data, list(ROOM_TRUTH))
+    x = problem.params.from_dict(ROOM_TRUTH)
+    np.testing.assert_allclose(problem.predict(x), problem.y, atol=1e-9)
+
+
+def test_simulate_refuses_points_behind_the_camera(room):
+    plan = mbcal.measurements_from_records([{"kind": "image_point", "camera": "eyes.left", "point": "lever.tip"}], room)
+    with pytest.raises(SolverError, match="cannot be made"):
+        mbcal.simulate(room, plan, {"robot.yaw": math.pi})
+
+
+def test_calibrated_model_is_written_without_touching_the_input(room, room_result, tmp_path):
+    source = (MODELS / "teleexistence.mdl").read_bytes()
+    out = tmp_path / "calibrated.mdl"
+    room_result.write_model(out)
+    assert (MODELS / "teleexistence.mdl").read_bytes() == source
+    again = mbcal.load_model(out)
+    for name, value in room_result.values.items():
+        assert again.param(name).nominal == pytest.approx(value, rel=1e-9, abs=1e-12)
+    assert "param room.yaw" in out.read_text() and "override" not in out.read_text()
+
+
+def test_values_declared_by_an_index_range_are_written_as_overrides(arm, tmp_path):
+    plan = mbcal.read_measurements(MEASUREMENTS / "arm_plan.json", arm)
+    data = mbcal.simulate(arm, plan, {"arm.offset3": 0.04}, seed=2)
+    result = mbcal.calibrate(arm, data, ["arm.offset*"], restarts=2)
+    out = tmp_path / "arm_calibrated.mdl"
+    result.write_model(out)  # its include of parts/stereo.mdl is rewritten to stay valid from tmp_path
+    text = out.read_text()
+    assert "override arm.offset3 =" in text
+    again = mbcal.load_model(out)
+    assert again.param("arm.offset3").nominal == pytest.approx(result.values["arm.offset3"], rel=1e-9)
+
+
+def test_nothing_to_estimate_is_a_clear_error(room, room_data):
+    with pytest.raises(SolverError, match="nothing to estimate"):
+        mbcal.calibrate(room, room_data, [])
+
+
+def test_range_measurements_recover_the_distance_to_the_wall(room):
+    # Rays of the depth sensor that hit the wall only: they see the room's y position and tilt.
+    plan = mbcal.measurements_from_records(
+        [{"kind": "range", "sensor": "depth", "ray": k, "sigma": 0.002} for k in range(192)], room
+    )
+    scene = mbcal.modeler(room, room.nominal)
+    from mbcal.raycast import scene_cast_rays
+
+    origins, directions = scene.range_rays("depth")
+    on_wall = np.asarray(scene_cast_rays(scene, origins, directions, shapes=["room.wall"]))
+    everything = np.asarray(scene_cast_rays(scene, origins, directions))
+    wall_only = np.isclose(on_wall, everything) & (np.abs(np.arange(192) % 16 - 7.5) > 5)
+    plan = plan.subset(wall_only)
+    assert len(plan) >= 20
+    truth = {"room.y": 0.03, "room.yaw": math.radians(1.5)}
+    data = mbcal.simulate(room, plan, truth, seed=4)
+    result = mbcal.calibrate(room, data, ["room.y", "room.yaw"], restarts=4)
+    assert result.ok
+    assert_within_3_sigma(result, truth)
+    assert result.std["room.y"] < 0.001
+
+
+def test_points_on_surfaces_recover_the_room_pose(room):
+    # A point cloud in the depth sensor's frame (from its rays at the true pose) fitted to the
+    # room's surfaces: the seed's "automatic calibration" with a range sensor.
+    truth = dict(ROOM_TRUTH)
+    scene = mbcal.modeler(room, mbcal.parameter_vector(room, truth))
+    from mbcal.raycast import scene_cast_rays
+
+    origins, directions = scene.range_rays("depth")
+    t = np.asarray(scene_cast_rays(scene, origins, directions))
+    hit = np.isfinite(t)
+    T = np.asarray(scene.frame("depth"))
+    world = np.asarray(origins)[hit] + np.asarray(directions)[hit] * t[hit, None]
+    local = (world - T[:3, 3]) @ T[:3, :3] + np.random.default_rng(2).normal(0, 0.001, world.shape)
+    records = [{"kind": "point_to_surface", "object": "room", "frame": "depth", "x": p[0], "y": p[1], "z": p[2],
+                "sigma": 0.002} for p in local]
+    data = mbcal.measurements_from_records(records, room)
+    result = mbcal.calibrate(room, data, ["room.*"], restarts=8, seed=3)
+    assert result.converged
+    assert_within_3_sigma(result, truth)

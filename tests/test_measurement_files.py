@@ -1,0 +1,194 @@
+"""Measurement files and plans: CSV and JSON, units, covariances, and located errors."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from mbcal.errors import MeasurementFileError
+from mbcal.language import load_model
+from mbcal.measurements.files import read_measurements, write_measurements
+
+from conftest import MEASUREMENTS, MODELS
+
+
+@pytest.fixture(scope="module")
+def room():
+    return load_model(MODELS / "teleexistence.mdl")
+
+
+@pytest.fixture(scope="module")
+def arm():
+    return load_model(MODELS / "arm7.mdl")
+
+
+def write(tmp_path, name, text):
+    path = tmp_path / name
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def test_bundled_plans_read_with_the_models(room, arm):
+    plan = read_measurements(MEASUREMENTS / "room_plan.csv", room)
+    assert len(plan) == 48 and plan.is_plan
+    assert {m.refs["camera"] for m in plan} == {"robot.head.eyes.left", "robot.head.eyes.right"}
+    arm_plan = read_measurements(MEASUREMENTS / "arm_plan.json", arm)
+    assert len(arm_plan) == 84
+    assert len(arm_plan.config_names) == 10
+    assert set(arm_plan.configurations["pose01"]) >= {f"arm.q{i}" for i in range(1, 8)}
+
+
+def test_csv_with_units_sigma_per_value_and_known_rows(tmp_path, room):
+    path = write(
+        tmp_path,
+        "m.csv",
+        "# a comment line\n"
+        "id,kind,config,camera,point,u,v,sigma,sigma_u,sigma_v,unit,param,value,frame,x,y,z\n"
+        "a,image_point,,left,lever.tip,100.5,200.25,0.5,,,,,,,,,\n"
+        "b,image_point,,eyes.right,lever.hub,101,201,,0.3,0.7,px,,,,,,\n"
+        "c,point3d,,,lever.tip,,,2,,,mm,,,room,10,20,30\n"
+        ",known,,,,,,,,,,lever.angle,25 deg,,,,\n",
+    )
+    ms = read_measurements(path, room)
+    a, b, c = ms.measurements
+    assert a.refs == {"camera": "robot.head.eyes.left", "point": "room.valve.lever.tip"}
+    np.testing.assert_array_equal(a.value, [100.5, 200.25])
+    np.testing.assert_allclose(a.sigma, [0.5, 0.5])
+    np.testing.assert_allclose(b.sigma, [0.3, 0.7])
+    np.testing.assert_allclose(c.value, [0.01, 0.02, 0.03])
+    np.testing.assert_allclose(c.sigma, [0.002] * 3)
+    assert c.refs["frame"] == "room"
+    assert ms.known == {"lever.angle": pytest.approx(math.radians(25))}
+
+
+def test_json_with_covariance_configurations_and_value_lists(tmp_path, arm):
+    doc = {
+        "configurations": {"p1": {"arm.q1": "-60 deg", "arm.q4": -1.0}},
+        "measurements": [
+            {"id": "m1", "kind": "image_point", "config": "p1", "camera": "eyes.left", "point": "hand.tip",
+             "value": [320.0, 240.0], "cov": [[0.25, 0.1], [0.1, 0.5]]},
+            {"kind": "distance", "config": "p1", "a": "hand.tip", "b": "hand.wrist", "value": 18.9, "unit": "cm",
+             "sigma": 1, "configuration": "p1"},
+        ],
+    }
+    ms = read_measurements(write(tmp_path, "m.json", json.dumps(doc)), arm)
+    m1, m2 = ms.measurements
+    np.testing.assert_array_equal(m1.cov, [[0.25, 0.1], [0.1, 0.5]])
+    assert m2.value == pytest.approx([0.189]) and m2.sigma == pytest.approx([0.01])
+    assert ms.configurations["p1"]["arm.q1"] == pytest.approx(math.radians(-60))
+    assert ms.config_names == ["p1"]
+
+
+@pytest.mark.parametrize("suffix", ["csv", "json"])
+def test_write_then_read_round_trips(tmp_path, arm, suffix):
+    plan = read_measurements(MEASUREMENTS / "arm_plan.json", arm)
+    rng = np.random.default_rng(0)
+    ms = plan.with_values([rng.normal(300, 50, 2) for _ in plan])
+    out = tmp_path / f"copy.{suffix}"
+    write_measurements(ms, out)
+    back = read_measurements(out, arm)
+    assert [m.id for m in back] == [m.id for m in ms]
+    for a, b in zip(ms, back):
+        np.testing.assert_array_equal(a.value, b.value)
+        np.testing.assert_array_equal(a.cov, b.cov)
+        assert a.config == b.config and a.refs == b.refs
+    assert back.configurations == ms.configurations
+
+
+CSV_ERRORS = {
+    "unknown_point_suggests": (
+        "kind,camera,point,u,v\nimage_point,left,lever.tpi,1,2\n",
+        "m.csv:2:1: 'point': the model has no point named 'lever.tpi'",
+        "room.valve.lever.tip",
+    ),
+    "unknown_camera": (
+        "kind,camera,point,u,v\nimage_point,middle,lever.tip,1,2\n",
+        "m.csv:2:1: 'camera': the model has no camera named 'middle'",
+        None,
+    ),
+    "nan_value": ("kind,camera,point,u,v\nimage_point,left,lever.tip,nan,2\n",
+                  "m.csv:2:1: value 'u': must be finite, got 'nan'", None),
+    "inf_value": ("kind,camera,point,u,v\nimage_point,left,lever.tip,1,inf\n",
+                  "m.csv:2:1: value 'v': must be finite, got 'inf'", None),
+    "missing_column_kind": ("camera,point,u,v\nleft,lever.tip,1,2\n",
+                            "m.csv:1:1: missing column 'kind' in the header", None),
+    "unknown_column": ("kind,camera,point,u,v,weight\nimage_point,left,lever.tip,1,2,3\n",
+                       "m.csv:1:23: unknown column 'weight'", None),
+    "half_a_value": ("kind,camera,point,u,v\nimage_point,left,lever.tip,1,\n",
+                     "m.csv:2:1: 'image_point' needs all of u, v; missing v", None),
+    "duplicate_id": ("id,kind,camera,point,u,v\na,image_point,left,lever.tip,1,2\na,image_point,left,lever.hub,1,2\n",
+                     "m.csv:3:1: duplicate id 'a' (first at m.csv:2:1)", None),
+    "unknown_kind": ("kind,camera,point,u,v\nimage_pt,left,lever.tip,1,2\n",
+                     "m.csv:2:1: unknown measurement kind 'image_pt'", "image_point"),
+    "bad_sigma": ("kind,camera,point,u,v,sigma\nimage_point,left,lever.tip,1,2,-1\n",
+                  "m.csv:2:1: sigma must be positive, got '-1'", None),
+    "wrong_unit": ("kind,camera,point,u,v,unit\nimage_point,left,lever.tip,1,2,mm\n",
+                   "m.csv:2:1: 'image_point' values are in pixels; unit 'mm' does not apply", None),
+    "not_a_number": ("kind,camera,point,u,v\nimage_point,left,lever.tip,one,2\n",
+                     "m.csv:2:1: value 'u': expected a number, got 'one'", None),
+    "too_many_fields": ("kind,camera,point,u,v\nimage_point,left,lever.tip,1,2,3\n",
+                        "m.csv:2:1: row has 6 fields but the header has 5", None),
+    "missing_role": ("kind,point,u,v\nimage_point,lever.tip,1,2\n",
+                     "m.csv:2:1: 'image_point' needs 'camera' (a camera name)", None),
+    "known_not_per_configuration": (
+        "kind,config,param,value\nknown,c1,lever.angle,5 deg\n",
+        "m.csv:2:1: 'lever.angle' is given for configuration 'c1' but is not declared 'per configuration' in the model",
+        None,
+    ),
+    "empty": ("", "m.csv:1:1: empty file: no header row", None),
+    "header_only": ("kind,camera,point,u,v\n", "m.csv:1:1: no measurements", None),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CSV_ERRORS))
+def test_bad_csv_gives_a_located_error(case, tmp_path, room, monkeypatch):
+    text, expected, hint = CSV_ERRORS[case]
+    monkeypatch.chdir(tmp_path)
+    write(tmp_path, "m.csv", text)
+    with pytest.raises(MeasurementFileError) as info:
+        read_measurements("m.csv", room)
+    assert str(info.value).startswith(expected), str(info.value)
+    if hint:
+        assert hint in str(info.value)
+
+
+def test_bad_json_is_located_by_line(tmp_path, room, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    write(tmp_path, "m.json", '{"measurements": [\n  {"kind": "image_point", "camera": "left", "point": "lever.tip",'
+          ' "u": 1, "v": 2},\n  {"kind": "image_point", "camera": "left", "point": "nowhere", "u": 1, "v": 2}\n]}\n')
+    with pytest.raises(MeasurementFileError) as info:
+        read_measurements("m.json", room)
+    assert str(info.value).startswith("m.json:3:3: 'point': the model has no point named 'nowhere'")
+    write(tmp_path, "broken.json", '{"measurements": [\n  {"kind": }\n]}')
+    with pytest.raises(MeasurementFileError, match=r"^broken.json:2:12: invalid JSON"):
+        read_measurements("broken.json", room)
+
+
+def test_wrong_arity_in_json_value_list(tmp_path, room, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    write(tmp_path, "m.json", '[{"kind": "image_point", "camera": "left", "point": "lever.tip", "value": [1, 2, 3]}]')
+    with pytest.raises(MeasurementFileError, match="'image_point' has 2 values \\(u, v\\), got 3"):
+        read_measurements("m.json", room)
+
+
+def test_missing_file_and_unknown_type(tmp_path, room):
+    with pytest.raises(MeasurementFileError, match="file not found"):
+        read_measurements(tmp_path / "nothere.csv", room)
+    with pytest.raises(MeasurementFileError, match="unknown measurement file type"):
+        read_measurements(write(tmp_path, "m.xlsx", "x"), room)
+
+
+def test_kind_the_model_does_not_declare_is_refused(tmp_path, monkeypatch):
+    from mbcal.language import load_model_text
+
+    model = load_model_text("point p = (0, 0, 0)\npoint q = (1 m, 0, 0)\nmeasure point3d\n")
+    monkeypatch.chdir(tmp_path)
+    write(tmp_path, "m.csv", "kind,a,b,value\ndistance,p,q,1\n")
+    with pytest.raises(MeasurementFileError) as info:
+        read_measurements("m.csv", model)
+    assert str(info.value).startswith(
+        "m.csv:2:1: the model declares the measurement models point3d; 'distance' is not one of them"
+    )

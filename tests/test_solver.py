@@ -1,0 +1,103 @@
+"""The low-level Marquardt solver: any residual function, batches of restarts, statuses."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mbcal._jax import jnp
+from mbcal.errors import SolverError
+from mbcal.solver import SolverConfig, Status, least_squares, random_starts
+
+
+def rosenbrock(x):
+    return jnp.stack([10.0 * (x[1] - x[0] ** 2), 1.0 - x[0]])
+
+
+def test_rosenbrock_converges_from_the_classic_start():
+    result = least_squares(rosenbrock, np.array([-1.2, 1.0]))
+    np.testing.assert_allclose(result.x_best, [1.0, 1.0], atol=1e-10)
+    assert result.status_best.converged
+    assert result.cost_best < 1e-20
+
+
+def test_linear_least_squares_matches_the_normal_equations():
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(30, 4))
+    b = rng.normal(size=30)
+
+    def fun(x, A, b):
+        return A @ x - b
+
+    result = least_squares(fun, np.zeros(4), args=(A, b))
+    np.testing.assert_allclose(result.x_best, np.linalg.lstsq(A, b, rcond=None)[0], rtol=1e-10, atol=1e-12)
+
+
+def nan_outside(x):
+    # Defined only for x[0] > 0: restarts that start elsewhere fail without stopping the others.
+    r = jnp.stack([jnp.log(x[0]) - 1.0, x[1] - 2.0])
+    return jnp.where(x[0] > 0, r, jnp.nan)
+
+
+def test_a_failing_restart_gets_its_status_and_does_not_spoil_the_batch():
+    starts = np.array([[1.0, 0.0], [-1.0, 0.0], [5.0, 3.0]])
+    result = least_squares(nan_outside, starts)
+    statuses = result.statuses()
+    assert statuses[1] is Status.NON_FINITE
+    assert np.isinf(result.cost[1])
+    assert statuses[0].converged and statuses[2].converged
+    np.testing.assert_allclose(result.x_best, [np.e, 2.0], rtol=1e-10)
+    assert result.best in (0, 2)
+
+
+def test_iteration_limit_is_reported():
+    result = least_squares(rosenbrock, np.array([-1.2, 1.0]), config=SolverConfig(max_iterations=3))
+    assert result.status_best is Status.MAX_ITERATIONS
+    assert result.iterations[0] == 3
+
+
+def test_every_status_has_a_message():
+    for status in Status:
+        assert status.message and status.label == status.name.lower()
+
+
+def test_random_starts_are_reproducible_and_inside_the_range():
+    lo = np.array([-1.0, np.nan, 0.0])
+    hi = np.array([1.0, np.nan, 10.0])
+    a = random_starts(np.array([0.5, 7.0, 3.0]), lo, hi, 50, seed=3)
+    b = random_starts(np.array([0.5, 7.0, 3.0]), lo, hi, 50, seed=3)
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(a[0], [0.5, 7.0, 3.0])
+    assert np.all(a[1:, 1] == 7.0)  # no range: stays at its initial value
+    assert np.all((a[1:, 0] >= -1) & (a[1:, 0] <= 1)) and np.all((a[1:, 2] >= 0) & (a[1:, 2] <= 10))
+    assert len(np.unique(a[1:, 0])) == 49
+
+
+def line_with_outliers(x, t, y):
+    return (x[0] + x[1] * t - y) / 0.1  # whitened: the noise has σ = 0.1
+
+
+@pytest.mark.parametrize("loss, scale", [("huber", 1.345), ("cauchy", 2.385)])
+def test_robust_loss_resists_gross_outliers(loss, scale):
+    t = np.linspace(0, 10, 40)
+    y = 2.0 + 0.5 * t + np.random.default_rng(1).normal(0, 0.1, t.size)
+    y[::5] += 25.0  # 20 % gross errors
+    plain = least_squares(line_with_outliers, np.zeros(2), args=(t, y))
+    config = SolverConfig(loss=loss, loss_scale=scale)
+    robust = least_squares(line_with_outliers, np.zeros(2), args=(t, y), config=config)
+    assert np.linalg.norm(robust.x_best - [2.0, 0.5]) < 0.1
+    assert np.linalg.norm(plain.x_best - [2.0, 0.5]) > 1.0
+
+
+def test_bad_config_is_a_clear_error():
+    with pytest.raises(SolverError, match="unknown loss 'l1'"):
+        SolverConfig(loss="l1")
+    with pytest.raises(SolverError, match="loss_scale"):
+        SolverConfig(loss_scale=0)
+
+
+def test_same_inputs_give_bit_identical_results():
+    starts = random_starts(np.array([-1.2, 1.0]), np.array([-2.0, -2.0]), np.array([2.0, 2.0]), 8, seed=5)
+    a = least_squares(rosenbrock, starts)
+    b = least_squares(rosenbrock, starts)
+    assert a.x.tobytes() == b.x.tobytes() and a.cost.tobytes() == b.cost.tobytes()
