@@ -196,8 +196,11 @@ def _residual_rows(problem: Problem, x: np.ndarray) -> list[ResidualRow]:
         for k, i in enumerate(g.members):
             m = problem.measurements.measurements[i]
             sl = slice(g.start + k * s, g.start + (k + 1) * s)
-            rows.append(ResidualRow(m.id, m.kind, m.config, dict(m.refs), y[sl].copy(), h[sl].copy(),
-                                    float(np.sqrt(np.sum(r[sl] ** 2)))))
+            rows.append(
+                ResidualRow(
+                    m.id, m.kind, m.config, dict(m.refs), y[sl].copy(), h[sl].copy(), float(np.sqrt(np.sum(r[sl] ** 2)))
+                )
+            )
     order = {m.id: i for i, m in enumerate(problem.measurements.measurements)}
     rows.sort(key=lambda row: order[row.id])
     return rows
@@ -267,15 +270,19 @@ def _candidate_rows(problem: Problem, x: np.ndarray, measured_keys: set) -> list
         except MbcalError:
             continue
         for rec in mm.candidates(model, list(problem.params.configurations)):
-            key = (rec["kind"], rec.get("config"), tuple(sorted((k, v) for k, v in rec.items()
-                                                                 if k not in ("kind", "config"))))
+            key = (
+                rec["kind"],
+                rec.get("config"),
+                tuple(sorted((k, v) for k, v in rec.items() if k not in ("kind", "config"))),
+            )
             if key not in measured_keys:
                 records.append({**rec, "sigma": mm.default_sigma})
     if not records:
         return []
     records = records[:5000]
-    plan = measurements_from_records(records, model, known=problem.measurements.known,
-                                     configurations=problem.measurements.configurations)
+    plan = measurements_from_records(
+        records, model, known=problem.measurements.known, configurations=problem.measurements.configurations
+    )
     cand = Problem(model, plan, problem.unknown_names, priors=False)
     visible = cand.visible(x)
     J = cand.jacobian(x)

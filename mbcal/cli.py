@@ -9,10 +9,14 @@ converged); 130 means interrupted.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import textwrap
 from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import numpy as np
 
 from mbcal.errors import MbcalError
 
@@ -117,6 +121,453 @@ def cmd_scene(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+# ---- shared helpers -------------------------------------------------------------------------------
+
+
+_ACTIVE_PROGRESS: list[Progress] = []
+
+
+class Progress:
+    """Progress on stderr: a ticking line on a terminal, one line per step otherwise."""
+
+    def __init__(self, enabled: bool = True):
+        import threading
+
+        _ACTIVE_PROGRESS.append(self)
+        self.enabled = enabled
+        self.tty = enabled and sys.stderr.isatty()
+        self._stop = threading.Event()
+        self._thread = None
+        self._message = ""
+        self._start = 0.0
+
+    def step(self, message: str) -> None:
+        import threading
+        import time
+
+        if not self.enabled:
+            return
+        self.done()
+        self._message = message
+        self._start = time.perf_counter()
+        if not self.tty:
+            print(f"… {message}", file=sys.stderr, flush=True)
+            return
+        self._stop = threading.Event()
+
+        def tick():
+            while not self._stop.wait(0.2):
+                elapsed = time.perf_counter() - self._start
+                print(f"\r… {self._message} ({elapsed:.1f} s)", end="", file=sys.stderr, flush=True)
+
+        self._thread = threading.Thread(target=tick, daemon=True)
+        self._thread.start()
+
+    def abort(self) -> None:
+        """Stop ticking and clear the line (an error message follows)."""
+        if self._thread is not None:
+            self._stop.set()
+            self._thread.join()
+            self._thread = None
+            print("\r\033[K", end="", file=sys.stderr, flush=True)
+
+    def done(self) -> None:
+        import time
+
+        if self._thread is not None:
+            self._stop.set()
+            self._thread.join()
+            self._thread = None
+            elapsed = time.perf_counter() - self._start
+            print(f"\r✓ {self._message} ({elapsed:.1f} s)", file=sys.stderr, flush=True)
+
+
+def _load(path: str):
+    from mbcal.language import load_model
+
+    return load_model(path)
+
+
+def _solver_config(args):
+    from mbcal.solver import SolverConfig
+
+    loss = args.loss or "linear"
+    scale = args.loss_scale if args.loss_scale is not None else {"huber": 1.345, "cauchy": 2.385}.get(loss, 1.0)
+    return SolverConfig(max_iterations=args.max_iterations, loss=loss, loss_scale=scale)
+
+
+def _estimate(model, patterns):
+    if patterns:
+        return list(patterns)
+    ranged = [p.name for p in model.params if p.lower is not None and p.upper is not None and not p.per_configuration]
+    if not ranged:
+        raise MbcalError(
+            "nothing to estimate: name the unknowns with --estimate NAME|GLOB "
+            "(no parameter of the model has a search range to take by default)"
+        )
+    return ranged
+
+
+def _write_json(data, target: str, inputs) -> None:
+    import json
+
+    from mbcal.fileio import atomic_write, check_output
+
+    text = json.dumps(data, indent=1, allow_nan=False) + "\n"
+    if target == "-":
+        sys.stdout.write(text)
+        sys.stdout.flush()
+    else:
+        atomic_write(check_output(target, inputs), text)
+
+
+def _say(args, text: str) -> None:
+    """The human report: stdout, or stderr when stdout carries JSON; nothing with --quiet."""
+    if args.quiet:
+        return
+    stream = sys.stderr if getattr(args, "json", None) == "-" else sys.stdout
+    print(text, file=stream)
+
+
+def _check_outputs(args, inputs) -> None:
+    """Validate every output path before any work is done (nothing is lost on a bad path)."""
+    from mbcal.fileio import check_output
+
+    for attr in ("json", "write_model", "plot", "output"):
+        value = getattr(args, attr, None)
+        if value and value != "-":
+            check_output(value, inputs)
+    if getattr(args, "overlay", None):
+        folder = Path(args.overlay)
+        if folder.exists() and not folder.is_dir():
+            raise MbcalError(f"--overlay needs a folder; {folder} is a file")
+
+
+# ---- solve ------------------------------------------------------------------------------------------
+
+
+def cmd_solve(args: argparse.Namespace) -> int:
+    from mbcal.api import calibrate
+    from mbcal.measurements.files import read_measurements
+
+    inputs = [args.model, args.measurements]
+    _check_outputs(args, inputs)
+    progress = Progress(not args.quiet)
+    progress.step(f"reading {args.model} and {args.measurements}")
+    model = _load(args.model)
+    data = read_measurements(args.measurements, model)
+    known = parse_assignments(args.set or [])
+    config = _solver_config(args)
+    estimate = _estimate(model, args.estimate)
+    progress.step(f"compiling and solving {args.restarts} restarts")
+    result = calibrate(
+        model,
+        data,
+        estimate,
+        restarts=args.restarts,
+        seed=args.seed,
+        config=config,
+        known=known,
+        priors=not args.no_priors,
+        scale_covariance=args.scale_covariance,
+        camera=args.camera,
+        outlier_threshold=args.outlier_threshold,
+    )
+    if args.overlay or args.plot:
+        progress.step("drawing overlays and plots")
+        if args.overlay:
+            from mbcal.overlays import calibration_overlays
+            from mbcal.render import load_image
+
+            backgrounds = {}
+            for item in args.background or []:
+                if "=" not in item:
+                    raise MbcalError(f"--background expects CAMERA=IMAGE, got '{item}'")
+                cam, path = item.split("=", 1)
+                backgrounds[cam] = load_image(path)
+            calibration_overlays(result, args.overlay, backgrounds=backgrounds)
+        if args.plot:
+            from mbcal.overlays import residual_plot
+
+            residual_plot(result, args.plot)
+    progress.done()
+    if args.json:
+        _write_json(result.to_json(), args.json, inputs)
+    if args.write_model:
+        result.write_model(args.write_model)
+    _say(args, result.summary())
+    return EXIT_OK if result.ok else EXIT_UNTRUSTED
+
+
+# ---- simulate ----------------------------------------------------------------------------------------
+
+
+def _model_and_plan(args: argparse.Namespace):
+    """Check the outputs, then read the model and the plan (or measurement file) of a command."""
+    from mbcal.measurements.files import read_measurements
+
+    _check_outputs(args, [args.model, args.plan])
+    model = _load(args.model)
+    return model, read_measurements(args.plan, model)
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    from mbcal.api import simulate
+    from mbcal.measurements.files import write_measurements
+
+    model, plan = _model_and_plan(args)
+    truth = parse_assignments(args.set or [])
+    if not math.isfinite(args.noise) or args.noise < 0:
+        raise MbcalError(f"--noise must be a non-negative number, got {args.noise}")
+    data = simulate(model, plan, truth, noise=args.noise, seed=args.seed, drop_invisible=args.drop_invisible)
+    write_measurements(data, args.output)
+    dropped = len(plan) - len(data)
+    _say(
+        args,
+        f"wrote {args.output}: {len(data)} measurements" + (f" ({dropped} not visible, left out)" if dropped else ""),
+    )
+    return EXIT_OK
+
+
+# ---- observe ------------------------------------------------------------------------------------------
+
+
+def cmd_observe(args: argparse.Namespace) -> int:
+    from mbcal.api import observe
+
+    model, plan = _model_and_plan(args)
+    inputs = [args.model, args.plan]
+    at = parse_assignments(args.at or [])
+    analysis = observe(
+        model, plan, _estimate(model, args.estimate), at=at or None, priors=not args.no_priors, camera=args.camera
+    )
+    if args.json:
+        _write_json(analysis.to_json(), args.json, inputs)
+    _say(args, analysis.summary())
+    return EXIT_OK if analysis.observability.observable_with_priors else EXIT_UNTRUSTED
+
+
+# ---- render -------------------------------------------------------------------------------------------
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from mbcal.modeling import modeler, parameter_vector
+    from mbcal.render import Layer, draw_overlay, load_image, render_view, save_png, wireframe_layer
+
+    inputs = [args.model] + ([args.background] if args.background else [])
+    _check_outputs(args, inputs)
+    if Path(args.output).suffix.lower() != ".png":
+        raise MbcalError("render writes PNG images: give an output name ending in .png")
+    model = _load(args.model)
+    if not model.cameras:
+        raise MbcalError(f"{args.model} has no camera to render from")
+    camera = model.resolve("camera", args.camera) if args.camera else model.cameras[0].name
+    scene = modeler(model, parameter_vector(model, parse_assignments(args.set or [])))
+    view = render_view(scene, camera, points=args.points and not args.wireframe)
+    if args.background is not None:
+        image = load_image(args.background)
+        info = model.cameras[model.camera_index(camera)]
+        if image.shape[:2] != (info.height, info.width):
+            raise MbcalError(
+                f"the background is {image.shape[1]}×{image.shape[0]} pixels but camera '{camera}' is "
+                f"{info.width}×{info.height}"
+            )
+    else:
+        image = view.color
+    layers = []
+    if args.wireframe:
+        layers.append(wireframe_layer(scene, camera, view, (230, 40, 40), None))
+    elif args.background is not None:
+        image = (0.5 * image + 0.5 * view.color).astype("uint8")  # the model blended over the photo
+    if args.points:
+        pts = np.asarray(scene.camera(camera).project(scene.points))
+        z = np.asarray(scene.camera(camera).to_camera(scene.points))[:, 2]
+        layers.append(Layer("points", pts[z > 0], (30, 80, 220)))
+    save_png(draw_overlay(image, layers, legend=False) if layers else image, args.output)
+    _say(
+        args, f"wrote {args.output} ({model.short_name('camera', camera)}, {view.color.shape[1]}×{view.color.shape[0]})"
+    )
+    return EXIT_OK
+
+
+# ---- demo -----------------------------------------------------------------------------------------------
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from mbcal.demo import run_demo
+
+    return run_demo(
+        out=Path(args.output),
+        restarts=args.restarts,
+        seed=args.seed,
+        quiet=args.quiet,
+        progress=Progress(not args.quiet),
+    )
+
+
+def _add_solver_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--estimate",
+        nargs="+",
+        metavar="NAME|GLOB",
+        help="parameters to estimate (names or globs such as 'room.*'; name@config for one "
+        "configuration's copy); default: every parameter with a search range",
+    )
+    p.add_argument(
+        "--set",
+        action="append",
+        metavar="NAME=VALUE",
+        help="a known value that replaces the model's (lever.angle=30deg); repeatable",
+    )
+    p.add_argument("--no-priors", action="store_true", help="ignore the model's prior σ of the unknowns")
+    p.add_argument("--camera", metavar="NAME", help="camera whose line of sight splits point uncertainties")
+
+
+def _register_commands(sub) -> None:
+    p = _add(
+        sub,
+        "solve",
+        "estimate parameters from measurements and report (S, σ, observability, residuals)",
+        """
+        Estimate the unknowns from a measurement file with Marquardt's method from several random
+        starts (one compiled, vmapped run), then report: estimates with σ and initial values, S and
+        RMS, observability (rank; unobservable combinations by name; measurements that would help),
+        point uncertainties across and along the line of sight, residuals worst first, restarts.
+
+        Exit status: 0 converged and observable; 1 solved but not converged or not observable;
+        2 bad input (with file:line:col).
+        """,
+        """
+        mbcal solve models/teleexistence.mdl measurements/room.csv --estimate 'room.*' \\
+            --restarts 32 --json report.json --write-model calibrated.mdl --overlay overlays/
+        """,
+        cmd_solve,
+    )
+    p.add_argument("model", metavar="MODEL", help="model file (.mdl or .urdf)")
+    p.add_argument("measurements", metavar="MEASUREMENTS", help="measurement file (.csv or .json)")
+    _add_solver_options(p)
+    p.add_argument("--restarts", type=int, default=32, metavar="N", help="random starting points (default 32)")
+    p.add_argument("--seed", type=int, default=0, metavar="S", help="seed of the starting points (default 0)")
+    p.add_argument("--loss", choices=["linear", "huber", "cauchy"], help="robust loss (default: linear)")
+    p.add_argument(
+        "--loss-scale", type=float, metavar="C", help="robust loss scale in σ (default 1.345 Huber, 2.385 Cauchy)"
+    )
+    p.add_argument("--max-iterations", type=int, default=100, metavar="N", help="iterations per restart")
+    p.add_argument("--scale-covariance", action="store_true", help="scale the covariance by the reduced χ²")
+    p.add_argument(
+        "--outlier-threshold",
+        type=float,
+        default=3.0,
+        metavar="K",
+        help="list measurements whose residual exceeds K σ (default 3)",
+    )
+    p.add_argument("--json", metavar="REPORT.json", help="write the JSON report ('-' for stdout)")
+    p.add_argument("--write-model", metavar="OUT.mdl", help="write the calibrated model (the input is untouched)")
+    p.add_argument("--overlay", metavar="DIR", help="write before/after overlay images (PNG) into DIR")
+    p.add_argument(
+        "--background",
+        action="append",
+        metavar="CAMERA=IMAGE",
+        help="the real image of a camera, for the overlays; repeatable",
+    )
+    p.add_argument("--plot", metavar="RESIDUALS.png", help="write a residual plot (PNG)")
+    p.add_argument("-q", "--quiet", action="store_true", help="print nothing (use the exit status, --json)")
+
+    p = _add(
+        sub,
+        "simulate",
+        "synthesise measurements for a plan from given true values",
+        """
+        Fill a measurement plan (a measurement file without values: which kinds, sensors, points and
+        configurations, with their σ) with values predicted from the model at the true values given
+        with --set, plus Gaussian noise of each measurement's σ times --noise.
+        """,
+        """
+        mbcal simulate models/teleexistence.mdl measurements/room_plan.csv \\
+            --set room.y=5cm --set room.yaw=1.2deg --noise 1 --seed 3 -o room.csv
+        """,
+        cmd_simulate,
+    )
+    p.add_argument("model", metavar="MODEL")
+    p.add_argument("plan", metavar="PLAN", help="measurement plan (.csv or .json)")
+    p.add_argument("--set", action="append", metavar="NAME=VALUE", help="a true value (room.x=2cm); repeatable")
+    p.add_argument(
+        "--noise", type=float, default=1.0, metavar="F", help="noise in units of each σ (default 1; 0: exact)"
+    )
+    p.add_argument("--seed", type=int, default=0, metavar="S", help="seed of the noise")
+    p.add_argument(
+        "--drop-invisible",
+        action="store_true",
+        help="leave out measurements that cannot be made (behind or outside a camera)",
+    )
+    p.add_argument("-o", "--output", required=True, metavar="MEASUREMENTS", help="output file (.csv or .json)")
+    p.add_argument("-q", "--quiet", action="store_true")
+
+    p = _add(
+        sub,
+        "observe",
+        "before measuring: is a plan enough? rank, σ per unknown, what is missing",
+        """
+        Analyse a measurement plan at the nominal values (or --at): the rank of the measurement
+        Jacobian, the σ each unknown would get, the combinations that cannot be observed (by name),
+        and the additional measurements that would help most.  Exit status 1 when something is
+        unobservable.
+        """,
+        "mbcal observe models/arm7.mdl measurements/arm_plan.json --estimate 'arm.offset*'",
+        cmd_observe,
+    )
+    p.add_argument("model", metavar="MODEL")
+    p.add_argument("plan", metavar="PLAN")
+    _add_solver_options(p)
+    p.add_argument("--at", action="append", metavar="NAME=VALUE", help="analyse at this value instead of nominal")
+    p.add_argument("--json", metavar="REPORT.json", help="write the analysis as JSON ('-' for stdout)")
+    p.add_argument("-q", "--quiet", action="store_true")
+
+    p = _add(
+        sub,
+        "render",
+        "render a model camera's view headlessly (PNG), optionally over a photo",
+        """
+        Render the scene from a model camera (pyrender, off screen).  With --background the model is
+        drawn over a real photo of that camera; with --wireframe as its visible edges (occluded edges
+        hidden).  Lines and points are projected with the camera's distortion; the shaded rendering
+        itself is pinhole.
+        """,
+        """
+        mbcal render models/teleexistence.mdl --camera eyes.left --set lever.angle=40deg -o left.png
+        mbcal render models/teleexistence.mdl --camera eyes.left --background photo.png --wireframe -o overlay.png
+        """,
+        cmd_render,
+    )
+    p.add_argument("model", metavar="MODEL")
+    p.add_argument("--camera", metavar="NAME", help="camera to render from (default: the first)")
+    p.add_argument("--set", action="append", metavar="NAME=VALUE", help="a parameter value; repeatable")
+    p.add_argument("--background", metavar="PHOTO", help="a real image of the camera to draw over")
+    p.add_argument("--wireframe", action="store_true", help="draw the model's visible edges")
+    p.add_argument("--points", action="store_true", help="mark the named points")
+    p.add_argument("-o", "--output", required=True, metavar="OUT.png")
+    p.add_argument("-q", "--quiet", action="store_true")
+
+    p = _add(
+        sub,
+        "demo",
+        "the seed's room calibration end to end on bundled data, with overlay images",
+        """
+        The seed's first experiment (section 4.2): the factory corner's pose is off by several
+        centimetres; 24 points are clicked in both images of the robot's stereo camera (simulated,
+        1 px noise); mbcal estimates the six pose parameters and shows the model over the camera
+        image before and after (like the seed's Figure 10), the report, and the errors of the
+        lever's points across and along the line of sight beside the paper's.
+        """,
+        "mbcal demo -o mbcal-demo",
+        cmd_demo,
+    )
+    p.add_argument("-o", "--output", default="mbcal-demo", metavar="DIR", help="output folder (default mbcal-demo)")
+    p.add_argument("--restarts", type=int, default=32, metavar="N")
+    p.add_argument("--seed", type=int, default=0, metavar="S")
+    p.add_argument("-q", "--quiet", action="store_true")
+
+
 # ---- the parser ---------------------------------------------------------------------------------
 
 
@@ -169,11 +620,16 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("model", metavar="MODEL", help="model file (.mdl or .urdf)")
     p.add_argument("-o", "--output", required=True, metavar="OUT", help="output file: .glb, .obj, .stl, .ply or .off")
-    p.add_argument("--set", action="append", metavar="NAME=VALUE",
-                   help="parameter value, with a unit if wanted (lever.angle=45deg); repeatable")
+    p.add_argument(
+        "--set",
+        action="append",
+        metavar="NAME=VALUE",
+        help="parameter value, with a unit if wanted (lever.angle=45deg); repeatable",
+    )
     p.add_argument("--points", action="store_true", help="mark every named point with a small sphere")
     p.add_argument("-q", "--quiet", action="store_true", help="print nothing on success")
 
+    _register_commands(sub)
     return parser
 
 
@@ -187,9 +643,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args.func(args))
     except MbcalError as err:
+        _stop_progress()
         print(err.render(), file=sys.stderr)
         return err.exit_code
     except KeyboardInterrupt:
+        _stop_progress()
         print("interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
     except BrokenPipeError:
@@ -197,6 +655,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return EXIT_OK
+
+
+def _stop_progress() -> None:
+    while _ACTIVE_PROGRESS:
+        _ACTIVE_PROGRESS.pop().abort()
 
 
 def entry() -> None:  # pragma: no cover - the console script

@@ -27,7 +27,15 @@ from mbcal.language import load_model
 from mbcal.language.model import Model
 from mbcal.measurements.files import MeasurementSet, measurements_from_records, write_measurements
 
-__all__ = ["room_plan", "arm_attitudes", "arm_plan", "ROOM_POINTS", "HAND_POINTS", "write_plans"]
+__all__ = [
+    "room_plan",
+    "arm_attitudes",
+    "arm_plan",
+    "ROOM_POINTS",
+    "HAND_POINTS",
+    "write_plans",
+    "line_of_sight_errors",
+]
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -113,8 +121,11 @@ def _hand_visible(model: Model, project, readings: dict[str, float], margin: flo
             X[k, model.param_index(f"arm.offset{j + 1}")] = off[j]
     depth, uv = (np.asarray(a) for a in project(X))
     width, height = model.cameras[0].width, model.cameras[0].height
-    inside = (uv[..., 0] >= margin) & (uv[..., 0] <= width - margin) & (uv[..., 1] >= margin) & (
-        uv[..., 1] <= height - margin
+    inside = (
+        (uv[..., 0] >= margin)
+        & (uv[..., 0] <= width - margin)
+        & (uv[..., 1] >= margin)
+        & (uv[..., 1] <= height - margin)
     )
     return bool(np.all(inside & (depth > 0.2)))
 
@@ -136,8 +147,9 @@ def arm_attitudes(model: Model, n: int, seed: int) -> list[dict[str, float]]:
     return out
 
 
-def arm_plan(model: Model, attitudes: list[dict[str, float]], *, extra_points: int = 2, prefix: str = "pose",
-             sigma: float = 1.0) -> MeasurementSet:
+def arm_plan(
+    model: Model, attitudes: list[dict[str, float]], *, extra_points: int = 2, prefix: str = "pose", sigma: float = 1.0
+) -> MeasurementSet:
     """Hand points in both cameras in every attitude: 4 points, 5 in the first ``extra_points`` attitudes."""
     records = []
     configurations = {}
@@ -147,9 +159,42 @@ def arm_plan(model: Model, attitudes: list[dict[str, float]], *, extra_points: i
         points = HAND_POINTS if i < extra_points else HAND_POINTS[:4]
         for pt in points:
             for cam in STEREO:
-                records.append({"id": f"{config}:{cam.split('.')[-1]}:{pt.split('.')[-1]}", "kind": "image_point",
-                                "config": config, "camera": cam, "point": pt, "sigma": sigma})
+                records.append(
+                    {
+                        "id": f"{config}:{cam.split('.')[-1]}:{pt.split('.')[-1]}",
+                        "kind": "image_point",
+                        "config": config,
+                        "camera": cam,
+                        "point": pt,
+                        "sigma": sigma,
+                    }
+                )
     return measurements_from_records(records, model, configurations=configurations)
+
+
+def line_of_sight_errors(
+    model: Model, X_true: np.ndarray, X_model: np.ndarray, points: list[str], camera: str, config: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Position errors of named points, split across (⟂, largest component) and along (∥) the
+    line of sight from ``camera``: the way the seed reports its errors.
+
+    ``X_true`` and ``X_model`` are parameter matrices (C, n) or vectors (n,).  Returns (⟂, ∥)
+    arrays in metres, one entry per point.
+    """
+    from mbcal.modeling import modeler
+
+    X_true, X_model = np.atleast_2d(X_true), np.atleast_2d(X_model)
+    true = modeler(model, X_true[config])
+    est = modeler(model, X_model[config])
+    eye = np.asarray(true.camera(camera).center)
+    perp, par = [], []
+    for p in points:
+        a, b = np.asarray(true.point(p)), np.asarray(est.point(p))
+        u = (a - eye) / np.linalg.norm(a - eye)
+        e = b - a
+        par.append(abs(float(e @ u)))
+        perp.append(float(np.linalg.norm(e - (e @ u) * u)))
+    return np.array(perp), np.array(par)
 
 
 def write_plans(folder: Path | None = None) -> list[Path]:
@@ -169,8 +214,9 @@ def write_plans(folder: Path | None = None) -> list[Path]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m mbcal.experiments", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m mbcal.experiments", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("plans", help="write the seed's measurement plans")
     p.add_argument("--folder", type=Path, default=None, help="where to write (default: measurements/)")

@@ -23,8 +23,9 @@ class OutputError(MbcalError):
     """An output cannot be written (it would overwrite an input, its folder is missing, ...)."""
 
 
-def check_output(path: str | os.PathLike[str], inputs: Iterable[str | os.PathLike[str]] = (),
-                 *, overwrite: bool = True) -> Path:
+def check_output(
+    path: str | os.PathLike[str], inputs: Iterable[str | os.PathLike[str]] = (), *, overwrite: bool = True
+) -> Path:
     """Validate an output path before any work is done.
 
     Raises

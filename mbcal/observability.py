@@ -106,8 +106,12 @@ class Suggestion:
     text: str
 
     def to_json(self) -> dict[str, Any]:
-        return {"measurement": self.record, "rank_gain": self.rank_gain, "sigma_reduction": self.sigma_reduction,
-                "description": self.text}
+        return {
+            "measurement": self.record,
+            "rank_gain": self.rank_gain,
+            "sigma_reduction": self.sigma_reduction,
+            "description": self.text,
+        }
 
 
 @dataclass
@@ -401,8 +405,13 @@ def split_line_of_sight(cov: np.ndarray, position: np.ndarray, eye: np.ndarray |
 
 
 def point_uncertainty(
-    name: str, configuration: str, camera: str | None, position: np.ndarray, J_point: np.ndarray,
-    covariance: np.ndarray, eye: np.ndarray | None,
+    name: str,
+    configuration: str,
+    camera: str | None,
+    position: np.ndarray,
+    J_point: np.ndarray,
+    covariance: np.ndarray,
+    eye: np.ndarray | None,
 ) -> PointUncertainty:
     """Propagate the unknowns' covariance to a point (J_point: (3, n) ∂p/∂x)."""
     used = np.any(J_point != 0, axis=0)

@@ -146,8 +146,9 @@ class ParameterSet:
                         seen.add(e.name)
                         unknowns.append(e)
         # Global unknowns first (model order), then per-configuration copies by configuration.
-        unknowns.sort(key=lambda u: (u.configuration is not None, self._config_index.get(u.configuration or "", 0),
-                                     u.param.index))
+        unknowns.sort(
+            key=lambda u: (u.configuration is not None, self._config_index.get(u.configuration or "", 0), u.param.index)
+        )
         self.unknowns: tuple[Unknown, ...] = tuple(unknowns)
 
         rows, cols, src = [], [], []

@@ -37,8 +37,14 @@ def fmt(value: Any, digits: int = 6) -> str:
     return str(value)
 
 
-def table(headers: Sequence[str], rows: Sequence[Sequence[Any]], *, title: str | None = None,
-          align: str | None = None, max_rows: int | None = None) -> str:
+def table(
+    headers: Sequence[str],
+    rows: Sequence[Sequence[Any]],
+    *,
+    title: str | None = None,
+    align: str | None = None,
+    max_rows: int | None = None,
+) -> str:
     """A text table.
 
     Parameters
@@ -106,13 +112,15 @@ def model_summary(model: Model) -> str:
             rng = "—"
             if p.lower is not None and p.upper is not None:
                 rng = f"[{fmt(p.display(p.lower), 4)}, {fmt(p.display(p.upper), 4)}] {p.unit}".rstrip()
-            rows.append([
-                p.name,
-                _value_with_unit(p, p.nominal),
-                rng,
-                _value_with_unit(p, p.sigma),
-                "per configuration" if p.per_configuration else "",
-            ])
+            rows.append(
+                [
+                    p.name,
+                    _value_with_unit(p, p.nominal),
+                    rng,
+                    _value_with_unit(p, p.sigma),
+                    "per configuration" if p.per_configuration else "",
+                ]
+            )
         out.append("")
         out.append(table(["parameter", "nominal", "search range", "prior σ", ""], rows, align="lllll"))
     if model.frames:

@@ -156,15 +156,21 @@ def _points_text(points, model) -> list[str]:
         return []
     rows = []
     for p in points[:40]:
-        rows.append([
-            model.short_name("point", p.point),
-            p.configuration,
-            model.short_name("camera", p.camera) if p.camera else "—",
-            "∞" if not np.isfinite(p.perpendicular) else f"{1000 * p.perpendicular:.3g}",
-            "∞" if not np.isfinite(p.parallel) else f"{1000 * p.parallel:.3g}",
-        ])
-    text = table(["point", "config", "line of sight", "σ⟂ (mm)", "σ∥ (mm)"], rows, align="lllrr",
-                 title="\nposition uncertainty of the points (⟂ and ∥ to the camera's line of sight):")
+        rows.append(
+            [
+                model.short_name("point", p.point),
+                p.configuration,
+                model.short_name("camera", p.camera) if p.camera else "—",
+                "∞" if not np.isfinite(p.perpendicular) else f"{1000 * p.perpendicular:.3g}",
+                "∞" if not np.isfinite(p.parallel) else f"{1000 * p.parallel:.3g}",
+            ]
+        )
+    text = table(
+        ["point", "config", "line of sight", "σ⟂ (mm)", "σ∥ (mm)"],
+        rows,
+        align="lllrr",
+        title="\nposition uncertainty of the points (⟂ and ∥ to the camera's line of sight):",
+    )
     extra = [f"… {len(points) - 40} more points in the JSON report"] if len(points) > 40 else []
     return [text, *extra]
 
@@ -199,8 +205,14 @@ def result_text(r: CalibrationResult, *, max_residuals: int = 15) -> str:
     rows = []
     for i, name in enumerate(r.names):
         unit = r.unit(name)
-        rows.append([name, _value_cell(unit, r.x[i]), _std_cell(unit, r.observability.std[i]),
-                     _value_cell(unit, r.x_initial[i])])
+        rows.append(
+            [
+                name,
+                _value_cell(unit, r.x[i]),
+                _std_cell(unit, r.observability.std[i]),
+                _value_cell(unit, r.x_initial[i]),
+            ]
+        )
     out.append("")
     out.append(table(["parameter", "estimate", "σ", "initial"], rows, align="lrrr"))
     out.extend(_observability_text(r.observability))
@@ -211,14 +223,24 @@ def result_text(r: CalibrationResult, *, max_residuals: int = 15) -> str:
     roles = {role.name: role.lookup for kind in {row.kind for row in worst} for role in _roles(kind)}
     for row in worst[:max_residuals]:
         refs = " ".join(_short(model, roles.get(k, ""), str(v)) for k, v in row.refs.items())
-        res_rows.append([row.id, row.kind, row.config, refs,
-                         " ".join(f"{v:+.3g}" for v in row.residual), f"{row.normalized:.3g}"])
+        res_rows.append(
+            [row.id, row.kind, row.config, refs, " ".join(f"{v:+.3g}" for v in row.residual), f"{row.normalized:.3g}"]
+        )
     out.append("")
-    out.append(table(["id", "kind", "config", "refers to", "residual", "|r|/σ"], res_rows, align="llllrr",
-                     title=f"residuals, worst first ({len(r.residuals)} in all):"))
+    out.append(
+        table(
+            ["id", "kind", "config", "refers to", "residual", "|r|/σ"],
+            res_rows,
+            align="llllrr",
+            title=f"residuals, worst first ({len(r.residuals)} in all):",
+        )
+    )
     if r.outliers:
-        out.append(f"{len(r.outliers)} outlier(s) above {r.outlier_threshold:g}σ: "
-                   + ", ".join(row.id for row in r.outliers[:10]) + (" …" if len(r.outliers) > 10 else ""))
+        out.append(
+            f"{len(r.outliers)} outlier(s) above {r.outlier_threshold:g}σ: "
+            + ", ".join(row.id for row in r.outliers[:10])
+            + (" …" if len(r.outliers) > 10 else "")
+        )
     counts: dict[str, int] = {}
     for s in solver.statuses():
         counts[s.label] = counts.get(s.label, 0) + 1
@@ -253,11 +275,12 @@ def plan_json(a: PlanAnalysis) -> dict[str, Any]:
 
 
 def plan_text(a: PlanAnalysis) -> str:
-    out = [f"plan: {len(a.problem.measurements)} measurements, {a.problem.size} values, "
-           f"{len(a.names)} unknowns"]
+    out = [f"plan: {len(a.problem.measurements)} measurements, {a.problem.size} values, {len(a.names)} unknowns"]
     if a.invisible:
-        out.append(f"warning: {len(a.invisible)} planned measurement(s) cannot be made at these values "
-                   f"(not counted): {', '.join(a.invisible[:8])}{' …' if len(a.invisible) > 8 else ''}")
+        out.append(
+            f"warning: {len(a.invisible)} planned measurement(s) cannot be made at these values "
+            f"(not counted): {', '.join(a.invisible[:8])}{' …' if len(a.invisible) > 8 else ''}"
+        )
     rows = []
     for i, name in enumerate(a.names):
         unit = a.problem.params.info(name).unit

@@ -156,8 +156,14 @@ class Scene:
         return scene
 
 
-def shape_mesh(kind: str, dims: np.ndarray, mesh_data=None, *, plane_size: float = 10.0, sections: int = 48):
-    """A trimesh of one shape in its own frame (centred, axis along z)."""
+def shape_mesh(
+    kind: str, dims: np.ndarray, mesh_data=None, *, plane_size: float = 10.0, sections: int = 48, two_sided: bool = True
+):
+    """A trimesh of one shape in its own frame (centred, axis along z).
+
+    Flat shapes get faces on both sides unless ``two_sided`` is False (renderers that draw
+    back faces themselves, where doubled faces would fight for the depth buffer).
+    """
     import trimesh
 
     if kind == "box":
@@ -176,6 +182,8 @@ def shape_mesh(kind: str, dims: np.ndarray, mesh_data=None, *, plane_size: float
         sx, sy = (dims[0], dims[1]) if kind == "rectangle" else (plane_size, plane_size)
         v = np.array([[-sx / 2, -sy / 2, 0], [sx / 2, -sy / 2, 0], [sx / 2, sy / 2, 0], [-sx / 2, sy / 2, 0]])
         f = np.array([[0, 1, 2], [0, 2, 3], [0, 2, 1], [0, 3, 2]])  # both sides
+        if not two_sided:
+            f = f[:2]
         return trimesh.Trimesh(v, f, process=False)
     if kind == "mesh":
         return trimesh.Trimesh(mesh_data.vertices * dims[:3], mesh_data.faces, process=False)

@@ -280,12 +280,12 @@ def _lm_single(fun: Callable, config: SolverConfig, x0: Array, args: tuple) -> t
         tiny_change = (actual <= config.ftol * cost) & (predicted <= config.ftol * cost)
         new_status = jnp.where(accept & tiny_change, Status.CONVERGED_COST, new_status)
         new_status = jnp.where(accept & (cost2 == 0), Status.CONVERGED_COST, new_status)
-        new_status = jnp.where((new_status == 0) & accept & gradient_test(rw2, Jw2), Status.CONVERGED_GRADIENT,
-                               new_status)
+        new_status = jnp.where(
+            (new_status == 0) & accept & gradient_test(rw2, Jw2), Status.CONVERGED_GRADIENT, new_status
+        )
         new_status = jnp.where((new_status == 0) & small_step & ok, Status.CONVERGED_STEP, new_status)
         new_status = jnp.where((new_status == 0) & (lam_new > config.lambda_max), Status.STALLED, new_status)
-        new_status = jnp.where((new_status == 0) & (it2 >= config.max_iterations), Status.MAX_ITERATIONS,
-                               new_status)
+        new_status = jnp.where((new_status == 0) & (it2 >= config.max_iterations), Status.MAX_ITERATIONS, new_status)
         return (x2, r2, rw2, Jw2, cost2, lam_new, nu_new, D, it2, new_status.astype(jnp.int32))
 
     x, r, rw, Jw, cost, lam, nu, D, it, status = jax.lax.while_loop(cond, body, state0)

@@ -82,8 +82,13 @@ def _relocate(text: str, source: Path, out: Path) -> list[tuple[int, int, str]]:
             q = stmt.index('"')
             edits.append((start + q, start + len(stmt.rstrip()), json.dumps(new, ensure_ascii=False)))
         else:
-            edits.append((_offset(lines, span.line, span.column), _offset(lines, span.end_line, span.end_column),
-                          json.dumps(new, ensure_ascii=False)))
+            edits.append(
+                (
+                    _offset(lines, span.line, span.column),
+                    _offset(lines, span.end_line, span.end_column),
+                    json.dumps(new, ensure_ascii=False),
+                )
+            )
     return edits
 
 
@@ -111,10 +116,7 @@ def write_calibrated_model(result: CalibrationResult, path, *, overwrite: bool =
         new = format_value(value, unit)
         span = info.value_span
         in_place = (
-            info.editable
-            and span is not None
-            and span.end_line is not None
-            and Path(span.path).resolve() == main
+            info.editable and span is not None and span.end_line is not None and Path(span.path).resolve() == main
         )
         if in_place:
             start = _offset(lines, span.line, span.column)
@@ -128,14 +130,15 @@ def write_calibrated_model(result: CalibrationResult, path, *, overwrite: bool =
     stamp = _dt.datetime.now().strftime("%Y-%m-%d %H:%M")
     header = [f"# Calibrated by mbcal on {stamp} from {source.name}"]
     if result.problem.measurements.path:
-        header.append(f"# with {result.problem.measurements.path}: S = {result.cost:.6g}, "
-                      + ", ".join(f"RMS {k} {v:.4g}" for k, v in result.rms.items()))
+        header.append(
+            f"# with {result.problem.measurements.path}: S = {result.cost:.6g}, "
+            + ", ".join(f"RMS {k} {v:.4g}" for k, v in result.rms.items())
+        )
     for name, value in values.items():
         unit = result.unit(name)
         s = std[name]
         shown = np.degrees(value) if unit == "deg" else value
-        sigma = ("unobservable" if not np.isfinite(s) else
-                 f"σ {np.degrees(s) if unit == 'deg' else s:.3g}")
+        sigma = "unobservable" if not np.isfinite(s) else f"σ {np.degrees(s) if unit == 'deg' else s:.3g}"
         header.append(f"#   {name} = {shown:.9g} {unit} ({sigma})".rstrip())
     body = "\n".join(header) + "\n\n" + text
     if overrides:

@@ -76,8 +76,11 @@ def test_arm_joint_offsets_are_recovered_over_ten_attitudes(arm):
 
 def test_lever_angle_is_recovered_from_its_points(room):
     plan = mbcal.measurements_from_records(
-        [{"kind": "image_point", "camera": cam, "point": f"lever.{p}", "sigma": 0.5}
-         for cam in ("eyes.left", "eyes.right") for p in ("tip", "knob_front", "middle")],
+        [
+            {"kind": "image_point", "camera": cam, "point": f"lever.{p}", "sigma": 0.5}
+            for cam in ("eyes.left", "eyes.right")
+            for p in ("tip", "knob_front", "middle")
+        ],
         room,
     )
     truth = {"lever.angle": math.radians(33.0)}
@@ -106,8 +109,11 @@ def test_camera_intrinsics_are_recovered_from_a_target_in_known_poses():
     model = mbcal.load_model_text(INTRINSICS_MODEL)
     poses = {"v1": (0, 0), "v2": (25, 0), "v3": (-25, 10), "v4": (0, -30), "v5": (15, 25)}
     configurations = {v: {"board.yaw": f"{a} deg", "board.tilt": f"{b} deg"} for v, (a, b) in poses.items()}
-    records = [{"kind": "image_point", "config": v, "camera": "cam", "point": p.name, "sigma": 0.3}
-               for v in poses for p in model.points]
+    records = [
+        {"kind": "image_point", "config": v, "camera": "cam", "point": p.name, "sigma": 0.3}
+        for v in poses
+        for p in model.points
+    ]
     plan = mbcal.measurements_from_records(records, model, configurations=configurations)
     truth = {"cam.fx": 812.0, "cam.fy": 806.0, "cam.cx": 331.0, "cam.cy": 236.0, "cam.k1": -0.12}
     data = mbcal.simulate(model, plan, truth, seed=9)
@@ -171,8 +177,9 @@ def test_autodiff_jacobian_matches_finite_differences(arm):
     x = problem.params.x0 + np.random.default_rng(0).normal(0, 0.03, problem.params.size)
     J = problem.jacobian(x)
     h = 1e-6
-    fd = np.stack([(problem.residual(x + h * e) - problem.residual(x - h * e)) / (2 * h)
-                   for e in np.eye(len(x))], axis=1)
+    fd = np.stack(
+        [(problem.residual(x + h * e) - problem.residual(x - h * e)) / (2 * h) for e in np.eye(len(x))], axis=1
+    )
     np.testing.assert_allclose(J, fd, rtol=1e-5, atol=1e-4)
 
 
@@ -260,8 +267,18 @@ def test_points_on_surfaces_recover_the_room_pose(room):
     T = np.asarray(scene.frame("depth"))
     world = np.asarray(origins)[hit] + np.asarray(directions)[hit] * t[hit, None]
     local = (world - T[:3, 3]) @ T[:3, :3] + np.random.default_rng(2).normal(0, 0.001, world.shape)
-    records = [{"kind": "point_to_surface", "object": "room", "frame": "depth", "x": p[0], "y": p[1], "z": p[2],
-                "sigma": 0.002} for p in local]
+    records = [
+        {
+            "kind": "point_to_surface",
+            "object": "room",
+            "frame": "depth",
+            "x": p[0],
+            "y": p[1],
+            "z": p[2],
+            "sigma": 0.002,
+        }
+        for p in local
+    ]
     data = mbcal.measurements_from_records(records, room)
     result = mbcal.calibrate(room, data, ["room.*"], restarts=8, seed=3)
     assert result.converged

@@ -47,8 +47,27 @@ def test_mdl_example_loads(doc, line, info, body, tmp_path, monkeypatch):
 def test_language_reference_has_an_example_for_every_statement():
     text = (ROOT / "docs" / "language.md").read_text(encoding="utf-8")
     examples = "\n".join(body for _, _, body in blocks(ROOT / "docs" / "language.md", "mdl"))
-    for keyword in ["param", "let", "template", "frame", "object", "link", "shape", "point", "joint", "camera",
-                    "range", "target", "include", "measure", "per configuration", "sigma", "±", "mesh(", "tube"]:
+    for keyword in [
+        "param",
+        "let",
+        "template",
+        "frame",
+        "object",
+        "link",
+        "shape",
+        "point",
+        "joint",
+        "camera",
+        "range",
+        "target",
+        "include",
+        "measure",
+        "per configuration",
+        "sigma",
+        "±",
+        "mesh(",
+        "tube",
+    ]:
         assert keyword in examples, keyword
     for function in ["translate", "rot_x", "rpy", "pose(", "axis_angle", "quat", "look_at", "sqrt", "atan2", "hypot"]:
         assert function in examples, function
@@ -69,3 +88,32 @@ def test_python_examples_run(doc, tmp_path):
     script.write_text(code, encoding="utf-8")
     result = subprocess.run([sys.executable, str(script)], cwd=ROOT, capture_output=True, text=True, timeout=900)
     assert result.returncode == 0, result.stderr[-4000:]
+
+
+def test_cli_session_in_the_guide_runs(tmp_path):
+    """docs/cli.md's shell session runs as written (in a scratch copy of the repository's data)."""
+    import os
+    import shutil
+    import subprocess
+
+    (sh_block,) = [body for _, _, body in blocks(ROOT / "docs" / "cli.md", "sh")]
+    shutil.copytree(ROOT / "models", tmp_path / "models")
+    shutil.copytree(ROOT / "measurements", tmp_path / "measurements")
+    env = {**os.environ, "PATH": f"{os.path.dirname(os.sys.executable)}:{os.environ.get('PATH', '')}"}
+    result = subprocess.run(
+        ["bash", "-e", "-c", sh_block], cwd=tmp_path, capture_output=True, text=True, timeout=1200, env=env
+    )
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    out = tmp_path / "out"
+    for name in (
+        "room.csv",
+        "report.json",
+        "calibrated.mdl",
+        "residuals.png",
+        "robust.json",
+        "left.png",
+        "calibrated.glb",
+    ):
+        assert (out / name).is_file(), name
+    assert "observable: rank 6 of 6" in result.stdout
+    assert "(exit status 1: not enough)" in result.stdout and "NOT observable" in result.stdout

@@ -68,10 +68,25 @@ def test_json_with_covariance_configurations_and_value_lists(tmp_path, arm):
     doc = {
         "configurations": {"p1": {"arm.q1": "-60 deg", "arm.q4": -1.0}},
         "measurements": [
-            {"id": "m1", "kind": "image_point", "config": "p1", "camera": "eyes.left", "point": "hand.tip",
-             "value": [320.0, 240.0], "cov": [[0.25, 0.1], [0.1, 0.5]]},
-            {"kind": "distance", "config": "p1", "a": "hand.tip", "b": "hand.wrist", "value": 18.9, "unit": "cm",
-             "sigma": 1, "configuration": "p1"},
+            {
+                "id": "m1",
+                "kind": "image_point",
+                "config": "p1",
+                "camera": "eyes.left",
+                "point": "hand.tip",
+                "value": [320.0, 240.0],
+                "cov": [[0.25, 0.1], [0.1, 0.5]],
+            },
+            {
+                "kind": "distance",
+                "config": "p1",
+                "a": "hand.tip",
+                "b": "hand.wrist",
+                "value": 18.9,
+                "unit": "cm",
+                "sigma": 1,
+                "configuration": "p1",
+            },
         ],
     }
     ms = read_measurements(write(tmp_path, "m.json", json.dumps(doc)), arm)
@@ -109,30 +124,66 @@ CSV_ERRORS = {
         "m.csv:2:1: 'camera': the model has no camera named 'middle'",
         None,
     ),
-    "nan_value": ("kind,camera,point,u,v\nimage_point,left,lever.tip,nan,2\n",
-                  "m.csv:2:1: value 'u': must be finite, got 'nan'", None),
-    "inf_value": ("kind,camera,point,u,v\nimage_point,left,lever.tip,1,inf\n",
-                  "m.csv:2:1: value 'v': must be finite, got 'inf'", None),
-    "missing_column_kind": ("camera,point,u,v\nleft,lever.tip,1,2\n",
-                            "m.csv:1:1: missing column 'kind' in the header", None),
-    "unknown_column": ("kind,camera,point,u,v,weight\nimage_point,left,lever.tip,1,2,3\n",
-                       "m.csv:1:23: unknown column 'weight'", None),
-    "half_a_value": ("kind,camera,point,u,v\nimage_point,left,lever.tip,1,\n",
-                     "m.csv:2:1: 'image_point' needs all of u, v; missing v", None),
-    "duplicate_id": ("id,kind,camera,point,u,v\na,image_point,left,lever.tip,1,2\na,image_point,left,lever.hub,1,2\n",
-                     "m.csv:3:1: duplicate id 'a' (first at m.csv:2:1)", None),
-    "unknown_kind": ("kind,camera,point,u,v\nimage_pt,left,lever.tip,1,2\n",
-                     "m.csv:2:1: unknown measurement kind 'image_pt'", "image_point"),
-    "bad_sigma": ("kind,camera,point,u,v,sigma\nimage_point,left,lever.tip,1,2,-1\n",
-                  "m.csv:2:1: sigma must be positive, got '-1'", None),
-    "wrong_unit": ("kind,camera,point,u,v,unit\nimage_point,left,lever.tip,1,2,mm\n",
-                   "m.csv:2:1: 'image_point' values are in pixels; unit 'mm' does not apply", None),
-    "not_a_number": ("kind,camera,point,u,v\nimage_point,left,lever.tip,one,2\n",
-                     "m.csv:2:1: value 'u': expected a number, got 'one'", None),
-    "too_many_fields": ("kind,camera,point,u,v\nimage_point,left,lever.tip,1,2,3\n",
-                        "m.csv:2:1: row has 6 fields but the header has 5", None),
-    "missing_role": ("kind,point,u,v\nimage_point,lever.tip,1,2\n",
-                     "m.csv:2:1: 'image_point' needs 'camera' (a camera name)", None),
+    "nan_value": (
+        "kind,camera,point,u,v\nimage_point,left,lever.tip,nan,2\n",
+        "m.csv:2:1: value 'u': must be finite, got 'nan'",
+        None,
+    ),
+    "inf_value": (
+        "kind,camera,point,u,v\nimage_point,left,lever.tip,1,inf\n",
+        "m.csv:2:1: value 'v': must be finite, got 'inf'",
+        None,
+    ),
+    "missing_column_kind": (
+        "camera,point,u,v\nleft,lever.tip,1,2\n",
+        "m.csv:1:1: missing column 'kind' in the header",
+        None,
+    ),
+    "unknown_column": (
+        "kind,camera,point,u,v,weight\nimage_point,left,lever.tip,1,2,3\n",
+        "m.csv:1:23: unknown column 'weight'",
+        None,
+    ),
+    "half_a_value": (
+        "kind,camera,point,u,v\nimage_point,left,lever.tip,1,\n",
+        "m.csv:2:1: 'image_point' needs all of u, v; missing v",
+        None,
+    ),
+    "duplicate_id": (
+        "id,kind,camera,point,u,v\na,image_point,left,lever.tip,1,2\na,image_point,left,lever.hub,1,2\n",
+        "m.csv:3:1: duplicate id 'a' (first at m.csv:2:1)",
+        None,
+    ),
+    "unknown_kind": (
+        "kind,camera,point,u,v\nimage_pt,left,lever.tip,1,2\n",
+        "m.csv:2:1: unknown measurement kind 'image_pt'",
+        "image_point",
+    ),
+    "bad_sigma": (
+        "kind,camera,point,u,v,sigma\nimage_point,left,lever.tip,1,2,-1\n",
+        "m.csv:2:1: sigma must be positive, got '-1'",
+        None,
+    ),
+    "wrong_unit": (
+        "kind,camera,point,u,v,unit\nimage_point,left,lever.tip,1,2,mm\n",
+        "m.csv:2:1: 'image_point' values are in pixels; unit 'mm' does not apply",
+        None,
+    ),
+    "not_a_number": (
+        "kind,camera,point,u,v\nimage_point,left,lever.tip,one,2\n",
+        "m.csv:2:1: value 'u': expected a number, got 'one'",
+        None,
+    ),
+    "too_many_fields": (
+        "kind,camera,point,u,v\nimage_point,left,lever.tip,1,2,3\n",
+        "m.csv:2:1: row has 6 fields but the header has 5",
+        None,
+    ),
+    "missing_role": (
+        "kind,point,u,v\nimage_point,lever.tip,1,2\n",
+        "m.csv:2:1: 'image_point' needs 'camera' (a camera name)",
+        None,
+    ),
     "known_not_per_configuration": (
         "kind,config,param,value\nknown,c1,lever.angle,5 deg\n",
         "m.csv:2:1: 'lever.angle' is given for configuration 'c1' but is not declared 'per configuration' in the model",
@@ -157,8 +208,12 @@ def test_bad_csv_gives_a_located_error(case, tmp_path, room, monkeypatch):
 
 def test_bad_json_is_located_by_line(tmp_path, room, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    write(tmp_path, "m.json", '{"measurements": [\n  {"kind": "image_point", "camera": "left", "point": "lever.tip",'
-          ' "u": 1, "v": 2},\n  {"kind": "image_point", "camera": "left", "point": "nowhere", "u": 1, "v": 2}\n]}\n')
+    write(
+        tmp_path,
+        "m.json",
+        '{"measurements": [\n  {"kind": "image_point", "camera": "left", "point": "lever.tip",'
+        ' "u": 1, "v": 2},\n  {"kind": "image_point", "camera": "left", "point": "nowhere", "u": 1, "v": 2}\n]}\n',
+    )
     with pytest.raises(MeasurementFileError) as info:
         read_measurements("m.json", room)
     assert str(info.value).startswith("m.json:3:3: 'point': the model has no point named 'nowhere'")

@@ -39,9 +39,20 @@ def test_unknown_kind_lists_the_available_ones():
 def installed_plugin(tmp_path_factory):
     target = tmp_path_factory.mktemp("site")
     result = subprocess.run(
-        [sys.executable, "-m", "pip", "install", "--no-deps", "--no-build-isolation", "--target", str(target),
-         str(PLUGIN)],
-        capture_output=True, text=True, timeout=600,
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "install",
+            "--no-deps",
+            "--no-build-isolation",
+            "--target",
+            str(target),
+            str(PLUGIN),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
     )
     assert result.returncode == 0, result.stderr[-3000:]
     return target
@@ -71,8 +82,9 @@ def test_example_plugin_is_found_through_its_entry_point_and_calibrates(installe
         """
     )
     env = {**os.environ, "PYTHONPATH": str(installed_plugin)}
-    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=600,
-                         cwd=tmp_path)
+    out = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=600, cwd=tmp_path
+    )
     assert out.returncode == 0, out.stderr[-3000:]
     values = json.loads(out.stdout.strip().splitlines()[-1])
     for name, (value, std, true) in values.items():

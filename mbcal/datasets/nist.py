@@ -24,8 +24,10 @@ Array = Any
 
 
 def _gauss(b, x):
-    return b[0] * jnp.exp(-b[1] * x) + b[2] * jnp.exp(-((x - b[3]) ** 2) / b[4] ** 2) + b[5] * jnp.exp(
-        -((x - b[6]) ** 2) / b[7] ** 2
+    return (
+        b[0] * jnp.exp(-b[1] * x)
+        + b[2] * jnp.exp(-((x - b[3]) ** 2) / b[4] ** 2)
+        + b[5] * jnp.exp(-((x - b[6]) ** 2) / b[7] ** 2)
     )
 
 
@@ -89,10 +91,23 @@ MODELS: dict[str, Callable[[Array, Array], Array]] = {
 
 # As stated in each file ("Lower/Average/Higher Level of Difficulty").
 DIFFICULTY = {
-    **dict.fromkeys(["Misra1a", "Chwirut2", "Chwirut1", "Lanczos3", "Gauss1", "Gauss2", "DanWood", "Misra1b"],
-                    "lower"),
-    **dict.fromkeys(["Kirby2", "Hahn1", "Nelson", "MGH17", "Lanczos1", "Lanczos2", "Gauss3", "Misra1c", "Misra1d",
-                     "Roszman1", "ENSO"], "average"),
+    **dict.fromkeys(["Misra1a", "Chwirut2", "Chwirut1", "Lanczos3", "Gauss1", "Gauss2", "DanWood", "Misra1b"], "lower"),
+    **dict.fromkeys(
+        [
+            "Kirby2",
+            "Hahn1",
+            "Nelson",
+            "MGH17",
+            "Lanczos1",
+            "Lanczos2",
+            "Gauss3",
+            "Misra1c",
+            "Misra1d",
+            "Roszman1",
+            "ENSO",
+        ],
+        "average",
+    ),
     **dict.fromkeys(["MGH09", "Thurber", "BoxBOD", "Rat42", "MGH10", "Eckerle4", "Rat43", "Bennett5"], "higher"),
 }
 

@@ -203,25 +203,35 @@ class _Checker:
                     )
                 self.joints[scope.frame] = _Deferred(stmt, scope, scope.frame)
             elif isinstance(stmt, (ast.Camera, ast.RangeSensor, ast.Target)):
-                index = self._new_frame(stmt.name, scope, stmt.pose, type(stmt).__name__.lower(), stmt.span,
-                                        stmt.name_span)
+                index = self._new_frame(
+                    stmt.name, scope, stmt.pose, type(stmt).__name__.lower(), stmt.span, stmt.name_span
+                )
                 self.deferred.append(_Deferred(stmt, scope, index, self.frames[index]["name"]))
             elif isinstance(stmt, ast.Override):
                 if scope.path or scope.in_template:
-                    raise MdlError("'override' is written at the top level of a file, with the full parameter name",
-                                   stmt.span)
+                    raise MdlError(
+                        "'override' is written at the top level of a file, with the full parameter name", stmt.span
+                    )
                 if stmt.name in self.overrides:
                     first = self.overrides[stmt.name][0].span
-                    raise DuplicateNameError(f"'{stmt.name}' is already overridden at {first}",
-                                             stmt.name_span or stmt.span)
+                    raise DuplicateNameError(
+                        f"'{stmt.name}' is already overridden at {first}", stmt.name_span or stmt.span
+                    )
                 self.overrides[stmt.name] = (stmt, scope)
             elif isinstance(stmt, ast.Measure):
                 self.measures.extend(k for k in stmt.kinds if k not in self.measures)
             else:  # pragma: no cover - every statement type is handled above
                 raise MdlError(f"unsupported statement {type(stmt).__name__}", stmt.span)
 
-    def _new_frame(self, name: str, scope: _Scope, pose: ast.Expr | None, keyword: str, span: SourceSpan,
-                   name_span: SourceSpan | None = None) -> int:
+    def _new_frame(
+        self,
+        name: str,
+        scope: _Scope,
+        pose: ast.Expr | None,
+        keyword: str,
+        span: SourceSpan,
+        name_span: SourceSpan | None = None,
+    ) -> int:
         self._check_simple_name(name, "frame", name_span or span)
         full = scope.join(name)
         self._declare(full, name_span or span, "frame")
@@ -244,8 +254,9 @@ class _Checker:
             full = scope.join(name)
             if full in self.params:
                 first = self.params[full].stmt.span
-                raise DuplicateNameError(f"parameter '{full}' is already declared at {first}",
-                                         stmt.name_span or stmt.span)
+                raise DuplicateNameError(
+                    f"parameter '{full}' is already declared at {first}", stmt.name_span or stmt.span
+                )
             self.params[full] = _ParamDecl(stmt, full, scope, len(self.params))
 
     def _walk_instance(self, stmt: ast.Instance, scope: _Scope) -> None:
@@ -403,14 +414,18 @@ class _Checker:
         for name, (stmt, scope) in self.overrides.items():
             decl = self.params.get(name)
             if decl is None:
-                raise UndefinedNameError(f"'override' of an undeclared parameter '{name}'", stmt.name_span or stmt.span,
-                                         hint=suggest(name, self.params))
+                raise UndefinedNameError(
+                    f"'override' of an undeclared parameter '{name}'",
+                    stmt.name_span or stmt.span,
+                    hint=suggest(name, self.params),
+                )
             info = decl.info
             assert info is not None
             value = self._constant(stmt.value, scope, f"the override of '{name}'")
             if info.dim is not None and not fits(value.dim, info.dim):
-                raise UnitError(f"'{name}' is {describe(info.dim)}, the override is {describe(value.dim)}",
-                                stmt.value.span)
+                raise UnitError(
+                    f"'{name}' is {describe(info.dim)}, the override is {describe(value.dim)}", stmt.value.span
+                )
             sigma = info.sigma
             if stmt.sigma is not None:
                 s = self._constant(stmt.sigma, scope, f"the sigma of the override of '{name}'")
@@ -419,8 +434,14 @@ class _Checker:
                 sigma = float(s.value)
                 if not sigma > 0:
                     raise DimensionError(f"sigma must be positive, got {sigma:g}", stmt.sigma.span)
-            decl.info = replace(info, nominal=float(value.value), sigma=sigma, value_span=stmt.value.span,
-                                value_unit=_literal_unit(stmt.value), editable=True)
+            decl.info = replace(
+                info,
+                nominal=float(value.value),
+                sigma=sigma,
+                value_span=stmt.value.span,
+                value_unit=_literal_unit(stmt.value),
+                editable=True,
+            )
 
     def _constant(self, expr: ast.Expr, scope: _Scope, what: str) -> Const:
         node = self.compile(expr, scope)
@@ -520,9 +541,7 @@ class _Checker:
             dim = a.dim
             if a.dim is not None and not a.dim.is_dimensionless:
                 if not isinstance(b, Const):
-                    raise UnitError(
-                        f"{describe(a.dim)} can only be raised to a constant power", expr.right.span
-                    )
+                    raise UnitError(f"{describe(a.dim)} can only be raised to a constant power", expr.right.span)
                 dim = a.dim ** float(b.value)
             return make_op("pow", [a, b], SCALAR, dim, 0, span)
         raise MdlError(f"unknown operator {op}", span)  # pragma: no cover
@@ -539,8 +558,17 @@ class _Checker:
         bound = _bind(expr.func, signature, expr.args, expr.kwargs, expr.span)
         return typer(self, bound, scope, expr.span)
 
-    def arg(self, bound: dict[str, ast.Expr], name: str, scope: _Scope, *, kind: str = SCALAR,
-            dim: Dim | None = None, size: int = 0, what: str = "") -> Node | None:
+    def arg(
+        self,
+        bound: dict[str, ast.Expr],
+        name: str,
+        scope: _Scope,
+        *,
+        kind: str = SCALAR,
+        dim: Dim | None = None,
+        size: int = 0,
+        what: str = "",
+    ) -> Node | None:
         """Compile argument ``name`` (None when absent), checking its kind, size and unit."""
         expr = bound.get(name)
         if expr is None:
@@ -693,8 +721,14 @@ class _Checker:
                     dims = (scale, scale, scale)
                 elif scale.kind == VECTOR and scale.size == 3:
                     dims = tuple(
-                        make_op("dot", [scale, Const(kind=VECTOR, dim=None, size=3, value=np.eye(3)[i])], SCALAR,
-                                scale.dim, 0, scale_expr.span)
+                        make_op(
+                            "dot",
+                            [scale, Const(kind=VECTOR, dim=None, size=3, value=np.eye(3)[i])],
+                            SCALAR,
+                            scale.dim,
+                            0,
+                            scale_expr.span,
+                        )
                         for i in range(3)
                     )
                 else:
@@ -717,7 +751,7 @@ class _Checker:
         if not isinstance(expr, ast.String):
             raise MdlTypeError('a mesh needs a file name in quotes: mesh("part.stl")', expr.span)
         base = Path(expr.span.path).resolve().parent if expr.span.path not in ("<string>",) else Path.cwd()
-        path = (base / expr.value)
+        path = base / expr.value
         key = str(path.resolve())
         if key in self.mesh_cache:
             return self.mesh_cache[key]
@@ -774,9 +808,7 @@ class _Checker:
 
     def _range(self, stmt: ast.RangeSensor, scope: _Scope, frame: int, name: str) -> RangeInfo:
         if stmt.args:
-            raise ArgumentError(
-                "range sensor settings are named: range NAME(direction = (0, 0, 1))", stmt.args[0].span
-            )
+            raise ArgumentError("range sensor settings are named: range NAME(direction = (0, 0, 1))", stmt.args[0].span)
         keys = [("direction", False), ("directions", False), ("fov", False), ("rays", False), ("max", False)]
         bound = _bind(f"range {stmt.name}", keys, (), stmt.kwargs, stmt.span)
         given = [k for k in ("direction", "directions", "fov") if k in bound]

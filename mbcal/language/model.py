@@ -223,8 +223,9 @@ class Model:
                 return table[matches[0]]
             if len(matches) > 1:
                 shown = ", ".join(f"'{m}'" for m in matches[:5]) + (", ..." if len(matches) > 5 else "")
-                raise UnknownNameError(f"'{name}' is ambiguous: it could be the {what} {shown}",
-                                       hint="give more of the dotted path")
+                raise UnknownNameError(
+                    f"'{name}' is ambiguous: it could be the {what} {shown}", hint="give more of the dotted path"
+                )
         hint = suggest(name, table)
         available = "" if hint else f" (the model has {len(table)} {what}s)"
         error = ParameterError if what == "param" else UnknownNameError
@@ -242,12 +243,13 @@ class Model:
         return self._suffixes[what]
 
     def short_name(self, what: str, full: str) -> str:
-        """The shortest dotted suffix of ``full`` that still names it uniquely (for reports)."""
+        """The shortest dotted suffix of ``full``, of two components at least, that still names
+        it uniquely (for reports: ``lever.tip``, ``eyes.left``)."""
         if what == "frame" and full == "world":
             return full
         parts = full.split(".")
         table = self._suffix_table(what)
-        for k in range(len(parts) - 1, 0, -1):
+        for k in range(len(parts) - 2, 0, -1):
             suffix = ".".join(parts[k:])
             if table.get(suffix) == [full] and suffix not in self._index[what]:
                 return suffix

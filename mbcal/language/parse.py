@@ -243,8 +243,9 @@ class _ToAst(Transformer):
     @v_args(meta=True)
     def override(self, meta, children):
         name, value, sigma = children
-        return ast.Override(span=self._span(meta), name_span=self._tspan(name), name=str(name), value=value,
-                            sigma=sigma)
+        return ast.Override(
+            span=self._span(meta), name_span=self._tspan(name), name=str(name), value=value, sigma=sigma
+        )
 
     def param_range(self, children):
         return (children[0], children[1])
@@ -257,8 +258,9 @@ class _ToAst(Transformer):
 
     @v_args(meta=True)
     def let(self, meta, children):
-        return ast.Let(span=self._span(meta), name_span=self._tspan(children[0]), name=str(children[0]),
-                       value=children[1])
+        return ast.Let(
+            span=self._span(meta), name_span=self._tspan(children[0]), name=str(children[0]), value=children[1]
+        )
 
     @v_args(meta=True)
     def template_param(self, meta, children):
@@ -269,8 +271,9 @@ class _ToAst(Transformer):
         name, *rest = children
         body = rest[-1]
         params = tuple(p for p in rest[:-1] if p is not None)
-        return ast.Template(span=self._span(meta), name_span=self._tspan(name), name=str(name), params=params,
-                            body=body)
+        return ast.Template(
+            span=self._span(meta), name_span=self._tspan(name), name=str(name), params=params, body=body
+        )
 
     def block(self, children):
         return tuple(c for c in children if isinstance(c, ast.Statement))
@@ -281,8 +284,14 @@ class _ToAst(Transformer):
     @v_args(meta=True)
     def frame(self, meta, children):
         keyword, name, pose, body = children
-        return ast.Frame(span=self._span(meta), name_span=self._tspan(name), keyword=str(keyword), name=str(name),
-                         pose=pose, body=body or ())
+        return ast.Frame(
+            span=self._span(meta),
+            name_span=self._tspan(name),
+            keyword=str(keyword),
+            name=str(name),
+            pose=pose,
+            body=body or (),
+        )
 
     @v_args(meta=True)
     def instance(self, meta, children):
@@ -321,8 +330,9 @@ class _ToAst(Transformer):
 
     @v_args(meta=True)
     def point(self, meta, children):
-        return ast.Point(span=self._span(meta), name_span=self._tspan(children[0]), name=str(children[0]),
-                         value=children[1])
+        return ast.Point(
+            span=self._span(meta), name_span=self._tspan(children[0]), name=str(children[0]), value=children[1]
+        )
 
     def _call_statement(node_type):  # noqa: N805
         @v_args(meta=True)
@@ -331,8 +341,14 @@ class _ToAst(Transformer):
             args, kwargs = arguments if arguments is not None else ((), ())
             extra = {"pose": rest[0]} if rest else {}
             key = "kind" if node_type is ast.Joint else "name"
-            return node_type(span=self._span(meta), name_span=self._tspan(name), args=args, kwargs=kwargs,
-                             **{key: str(name)}, **extra)
+            return node_type(
+                span=self._span(meta),
+                name_span=self._tspan(name),
+                args=args,
+                kwargs=kwargs,
+                **{key: str(name)},
+                **extra,
+            )
 
         return method
 
@@ -440,9 +456,7 @@ def _read_model_text(path: Path, span: SourceSpan | None) -> str:
     try:
         return data.decode("utf-8")
     except UnicodeDecodeError as err:
-        raise IncludeError(
-            f"{path} is not UTF-8 text (byte {err.start}); is it a binary file?", span
-        ) from None
+        raise IncludeError(f"{path} is not UTF-8 text (byte {err.start}); is it a binary file?", span) from None
 
 
 def parse_file(path: str | os.PathLike[str]) -> tuple[ast.Statement, ...]:
@@ -472,7 +486,7 @@ def _display_path(path: Path) -> str:
 def _parse_with_includes(path: Path, stack: tuple[Path, ...], span: SourceSpan | None) -> tuple[ast.Statement, ...]:
     resolved = path.resolve()
     if resolved in stack:
-        cycle = " -> ".join(_display_path(p) for p in (*stack[stack.index(resolved):], resolved))
+        cycle = " -> ".join(_display_path(p) for p in (*stack[stack.index(resolved) :], resolved))
         raise IncludeError(f"include cycle: {cycle}", span)
     if len(stack) >= MAX_INCLUDE_DEPTH:
         raise IncludeError(f"includes nested deeper than {MAX_INCLUDE_DEPTH} files", span)
@@ -488,7 +502,7 @@ def _resolve_includes(
     out: list[ast.Statement] = []
     for stmt in statements:
         if isinstance(stmt, ast.Include):
-            target = (current.parent / stmt.path)
+            target = current.parent / stmt.path
             body = _parse_with_includes(target, stack, stmt.span)
             stmt = ast.Include(span=stmt.span, path=stmt.path, resolved=str(target.resolve()), statements=body)
         elif isinstance(stmt, (ast.Frame, ast.Instance, ast.Template)):

@@ -173,8 +173,10 @@ class Range(MeasurementModel):
         for cfg in configurations:
             for r in model.ranges:
                 step = max(1, len(r.directions) // 64)  # a sample of a dense grid is enough to rank
-                out.extend({"kind": self.kind, "sensor": r.name, "ray": k, "config": cfg}
-                           for k in range(0, len(r.directions), step))
+                out.extend(
+                    {"kind": self.kind, "sensor": r.name, "ray": k, "config": cfg}
+                    for k in range(0, len(r.directions), step)
+                )
         return out
 
     def _rays(self, scenes: Scene, batch: Batch) -> tuple[Array, Array, np.ndarray]:
@@ -182,8 +184,8 @@ class Range(MeasurementModel):
         sensors = batch.refs["sensor"]
         rays = batch.data[:, 0].astype(np.int64)
         frames = np.array([model.ranges[s].frame for s in sensors], dtype=np.int64)
-        local = np.stack([model.ranges[s].directions[r] for s, r in zip(sensors, rays)]) if len(batch) else np.zeros(
-            (0, 3)
+        local = (
+            np.stack([model.ranges[s].directions[r] for s, r in zip(sensors, rays)]) if len(batch) else np.zeros((0, 3))
         )
         T = scenes.frame_poses[batch.config, frames]
         directions = jnp.einsum("nij,nj->ni", T[:, :3, :3], local)

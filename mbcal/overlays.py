@@ -1,0 +1,176 @@
+"""Pictures of a calibration: the model over the camera image before and after, and residuals.
+
+Like the seed's Figures 10 and 11: the virtual model drawn as a wireframe over the real image,
+before and after calibration, with the measured points marked.  mbcal adds the residual of
+every point as a line from where the model puts it to where it was measured.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+
+from mbcal._jax import jax, jnp
+
+__all__ = ["calibration_overlays", "residual_plot", "BEFORE", "AFTER", "MEASURED"]
+
+BEFORE = (215, 40, 40)
+AFTER = (20, 150, 60)
+MEASURED = (30, 80, 220)
+RESIDUAL = (230, 130, 0)
+
+
+def _config_scene(problem, x, config: int):
+    scenes = problem.scenes(jnp.asarray(x, dtype=float))
+    return jax.tree_util.tree_map(lambda a: a[config], scenes)
+
+
+def _safe(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_" else "_" for c in name)
+
+
+def calibration_overlays(
+    result,
+    out_dir,
+    *,
+    backgrounds: Mapping[str, np.ndarray] | None = None,
+    cameras: list[str] | None = None,
+    configurations: list[str] | None = None,
+    vector_scale: float = 10.0,
+    max_images: int = 24,
+) -> list[Path]:
+    """Write before/after overlay PNGs for every camera and configuration with image points.
+
+    Parameters
+    ----------
+    result : CalibrationResult
+    out_dir : path
+        Folder for ``<camera>_<config>_before.png`` and ``..._after.png``.
+    backgrounds : mapping
+        Camera name → the real image (H, W, 3).  Without one, the calibrated model's own
+        rendering is the background.
+    vector_scale : float
+        The residuals after calibration are drawn this many times longer (they are small).
+    """
+    from mbcal.render import Layer, draw_overlay, render_view, save_png, wireframe_layer
+
+    problem = result.problem
+    model = problem.model
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    backgrounds = {model.resolve("camera", k): v for k, v in (backgrounds or {}).items()}
+    rows = [r for r in result.residuals if r.kind == "image_point"]
+    groups: dict[tuple[str, str], list] = {}
+    for r in rows:
+        groups.setdefault((r.refs["camera"], r.config), []).append(r)
+    if cameras is not None:
+        wanted = {model.resolve("camera", c) for c in cameras}
+        groups = {k: v for k, v in groups.items() if k[0] in wanted}
+    if configurations is not None:
+        groups = {k: v for k, v in groups.items() if k[1] in configurations}
+    before_x = problem.params.x0
+    written: list[Path] = []
+    configs = list(problem.params.configurations)
+    predicted_before = problem.predict(before_x)
+    index = {m.id: i for i, m in enumerate(problem.measurements.measurements)}
+    row_start = {}
+    for g in problem.groups:
+        for k, i in enumerate(g.members):
+            row_start[int(i)] = g.start + k * g.model.size
+    for (camera, config), members in list(groups.items())[:max_images]:
+        c = configs.index(config)
+        scene_before = _config_scene(problem, before_x, c)
+        scene_after = _config_scene(problem, result.x, c)
+        view_before = render_view(scene_before, camera)
+        view_after = render_view(scene_after, camera)
+        background = backgrounds.get(camera)
+        if background is None:
+            background = (0.55 * view_after.color + 0.45 * 255).astype(np.uint8)
+        measured = np.array([r.measured for r in members])
+        after = np.array([r.predicted for r in members])
+        before = np.array([predicted_before[row_start[index[r.id]] : row_start[index[r.id]] + 2] for r in members])
+        stem = f"{_safe(model.short_name('camera', camera))}" + ("" if config == "default" else f"_{_safe(config)}")
+        img = draw_overlay(
+            background,
+            [
+                wireframe_layer(scene_before, camera, view_before, BEFORE, "model before calibration"),
+                Layer("vectors", np.stack([before, measured], axis=1), RESIDUAL, 1.5, "residual (model → measured)"),
+                Layer("points", measured, MEASURED, 1.5, "measured points"),
+            ],
+        )
+        save_png(img, out_dir / f"{stem}_before.png")
+        tips = after + vector_scale * (measured - after)
+        img = draw_overlay(
+            background,
+            [
+                wireframe_layer(scene_after, camera, view_after, AFTER, "model after calibration"),
+                Layer(
+                    "vectors",
+                    np.stack([after, tips], axis=1),
+                    RESIDUAL,
+                    1.5,
+                    f"residual × {vector_scale:g} (model → measured)",
+                ),
+                Layer("points", measured, MEASURED, 1.5, "measured points"),
+            ],
+        )
+        save_png(img, out_dir / f"{stem}_after.png")
+        written += [out_dir / f"{stem}_before.png", out_dir / f"{stem}_after.png"]
+    return written
+
+
+def residual_plot(result, path, *, title: str | None = None) -> Path:
+    """A PNG of the normalised residuals (worst first) and of the image residual vectors."""
+    import io
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from mbcal.fileio import atomic_write
+
+    rows = sorted(result.residuals, key=lambda r: -r.normalized)
+    image_rows = [r for r in result.residuals if r.kind == "image_point"]
+    fig, axes = plt.subplots(1, 2 if image_rows else 1, figsize=(11 if image_rows else 6, 4.2), squeeze=False)
+    ax = axes[0, 0]
+    values = np.array([r.normalized for r in rows])
+    colors = ["#d62728" if v > result.outlier_threshold else "#1f77b4" for v in values]
+    ax.bar(np.arange(len(values)), values, color=colors, width=1.0)
+    ax.axhline(
+        result.outlier_threshold,
+        color="#d62728",
+        lw=1,
+        ls="--",
+        label=f"outlier threshold {result.outlier_threshold:g}σ",
+    )
+    ax.set_xlabel("measurement (worst first)")
+    ax.set_ylabel("|residual| / σ")
+    ax.set_title("normalised residuals")
+    ax.legend(loc="upper right", fontsize=8)
+    if image_rows:
+        ax = axes[0, 1]
+        cams = sorted({r.refs["camera"] for r in image_rows})
+        for cam in cams:
+            e = np.array([r.residual for r in image_rows if r.refs["camera"] == cam])
+            ax.scatter(e[:, 0], e[:, 1], s=12, label=result.problem.model.short_name("camera", cam))
+        lim = max(1.0, float(np.max(np.abs([r.residual for r in image_rows]))) * 1.1)
+        ax.set_xlim(-lim, lim)
+        ax.set_ylim(lim, -lim)  # image v axis points down
+        ax.axhline(0, color="grey", lw=0.5)
+        ax.axvline(0, color="grey", lw=0.5)
+        ax.set_aspect("equal")
+        ax.set_xlabel("u residual (px)")
+        ax.set_ylabel("v residual (px)")
+        ax.set_title(f"image residuals (RMS {result.rms.get('image_point', float('nan')):.3g} px)")
+        ax.legend(fontsize=8)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    plt.close(fig)
+    atomic_write(path, buf.getvalue())
+    return Path(path)
