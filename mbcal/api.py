@@ -321,6 +321,7 @@ def calibrate(
     suggest: bool = True,
     observability: ObservabilityConfig | None = None,
     outlier_threshold: float = 3.0,
+    initial: Mapping[str, float] | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> CalibrationResult:
     """Estimate the unknowns from measurements (seed, section 3).
@@ -352,13 +353,17 @@ def calibrate(
         was measured in).
     suggest : bool
         When unobservable, rank candidate measurements that would help.
+    initial : mapping
+        Starting values of unknowns (``name`` or ``name@config``) for the first restart, e.g. from a
+        closed-form solution; the other restarts are drawn in the search ranges.
     """
     t0 = time.perf_counter()
     say = progress or (lambda _msg: None)
     problem = Problem(model, measurements, estimate, known=known, priors=priors)
     problem.check_ready()
     params = problem.params
-    starts = random_starts(params.x0, params.lower, params.upper, restarts, seed)
+    x_init = params.from_dict(dict(initial)) if initial else params.x0
+    starts = random_starts(x_init, params.lower, params.upper, restarts, seed)
     config = config or SolverConfig()
     say(f"solving: {params.size} unknowns, {problem.size} residuals, {len(starts)} restarts")
     solved = least_squares(problem.residual_function, starts, args=(problem.y, params.known), config=config)
@@ -386,7 +391,7 @@ def calibrate(
         problem=problem,
         solver=solved,
         x=x,
-        x_initial=params.x0,
+        x_initial=x_init,
         observability=obs,
         residuals=rows,
         points=pts,

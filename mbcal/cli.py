@@ -248,14 +248,14 @@ def _check_outputs(args, inputs) -> None:
 
 def cmd_solve(args: argparse.Namespace) -> int:
     from mbcal.api import calibrate
-    from mbcal.measurements.files import read_measurements
+    from mbcal.measurements.files import merge_measurements, read_measurements
 
-    inputs = [args.model, args.measurements]
+    inputs = [args.model, *args.measurements]
     _check_outputs(args, inputs)
     progress = Progress(not args.quiet)
-    progress.step(f"reading {args.model} and {args.measurements}")
+    progress.step(f"reading {args.model} and {', '.join(args.measurements)}")
     model = _load(args.model)
-    data = read_measurements(args.measurements, model)
+    data = merge_measurements([read_measurements(path, model) for path in args.measurements])
     known = parse_assignments(args.set or [])
     config = _solver_config(args)
     estimate = _estimate(model, args.estimate)
@@ -390,6 +390,78 @@ def cmd_render(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+# ---- convert --------------------------------------------------------------------------------------------
+
+
+def cmd_convert(args: argparse.Namespace) -> int:
+    from mbcal.fileio import atomic_write, check_output
+    from mbcal.urdf import load_urdf, urdf_to_mdl
+
+    if Path(args.robot).suffix.lower() != ".urdf":
+        raise MbcalError(f"convert reads a URDF robot description; {args.robot} is not a .urdf file")
+    out = check_output(args.output, [args.robot])
+    load_urdf(args.robot)  # check it all
+    atomic_write(out, urdf_to_mdl(args.robot, mesh_base=out.resolve().parent))
+    _say(args, f"wrote {out}")
+    return EXIT_OK
+
+
+# ---- detect / calibrate-camera ------------------------------------------------------------------------
+
+
+def cmd_detect(args: argparse.Namespace) -> int:
+    from mbcal.detect import detect_images
+    from mbcal.measurements.files import write_measurements
+
+    _check_outputs(args, [args.target, *args.images])
+    if not math.isfinite(args.sigma) or args.sigma <= 0:
+        raise MbcalError(f"--sigma must be positive, got {args.sigma}")
+    model = _load(args.target)
+    progress = Progress(not args.quiet)
+    progress.step(f"detecting the target in {len(args.images)} images")
+    data, detections = detect_images(model, args.images, target=args.name, camera=args.camera, sigma=args.sigma)
+    progress.done()
+    write_measurements(data, args.output)
+    missed = [d.image for d in detections if not d.found]
+    lines = [f"wrote {args.output}: {len(data)} corners in {len(detections) - len(missed)} of {len(detections)} images"]
+    lines += [f"  not found in {m}" for m in missed]
+    _say(args, "\n".join(lines))
+    return EXIT_OK if not missed else EXIT_UNTRUSTED
+
+
+def cmd_calibrate_camera(args: argparse.Namespace) -> int:
+    from mbcal.calibration import calibrate_cameras, reprojection_images
+    from mbcal.measurements.files import merge_measurements, read_measurements
+
+    inputs = [args.model, *args.measurements]
+    _check_outputs(args, inputs)
+    model = _load(args.model)
+    data = merge_measurements([read_measurements(path, model) for path in args.measurements])
+    progress = Progress(not args.quiet)
+    progress.step("initialising (Zhang's method) and refining")
+    cc = calibrate_cameras(
+        model, data, args.estimate, initialize=not args.no_init, restarts=args.restarts, seed=args.seed
+    )
+    images = dict(data.images)
+    for item in args.image or []:
+        if "=" not in item:
+            raise MbcalError(f"--image expects CONFIG=PATH, got '{item}'")
+        config, path = item.split("=", 1)
+        images[config] = path
+    if args.overlay:
+        progress.step("drawing the reprojected corners on the images")
+        if not images:
+            raise MbcalError("--overlay needs the images: detect them with 'mbcal detect' or give --image CONFIG=PATH")
+        reprojection_images(cc, images, args.overlay)
+    progress.done()
+    if args.json:
+        _write_json(cc.to_json(), args.json, inputs)
+    if args.write_model:
+        cc.result.write_model(args.write_model)
+    _say(args, cc.summary())
+    return EXIT_OK if cc.ok else EXIT_UNTRUSTED
+
+
 # ---- demo -----------------------------------------------------------------------------------------------
 
 
@@ -444,7 +516,9 @@ def _register_commands(sub) -> None:
         cmd_solve,
     )
     p.add_argument("model", metavar="MODEL", help="model file (.mdl or .urdf)")
-    p.add_argument("measurements", metavar="MEASUREMENTS", help="measurement file (.csv or .json)")
+    p.add_argument(
+        "measurements", metavar="MEASUREMENTS", nargs="+", help="measurement files (.csv or .json); several are merged"
+    )
     _add_solver_options(p)
     p.add_argument("--restarts", type=int, default=32, metavar="N", help="random starting points (default 32)")
     p.add_argument("--seed", type=int, default=0, metavar="S", help="seed of the starting points (default 0)")
@@ -546,6 +620,80 @@ def _register_commands(sub) -> None:
     p.add_argument("--wireframe", action="store_true", help="draw the model's visible edges")
     p.add_argument("--points", action="store_true", help="mark the named points")
     p.add_argument("-o", "--output", required=True, metavar="OUT.png")
+    p.add_argument("-q", "--quiet", action="store_true")
+
+    p = _add(
+        sub,
+        "convert",
+        "write a URDF robot as an .mdl model (joint origins and offsets as parameters)",
+        """
+        Translate a URDF robot description into mbcal's language: links as nested frames, each
+        joint's origin as six parameters (x y z roll pitch yaw), its reading as a per-configuration
+        parameter and its zero offset as an unknown.  Every command also reads .urdf files
+        directly; this shows what they see.  See docs/urdf.md.
+        """,
+        "mbcal convert tests/data/arm7.urdf -o arm7.mdl",
+        cmd_convert,
+    )
+    p.add_argument("robot", metavar="ROBOT.urdf")
+    p.add_argument("-o", "--output", required=True, metavar="OUT.mdl")
+    p.add_argument("-q", "--quiet", action="store_true")
+
+    p = _add(
+        sub,
+        "detect",
+        "find calibration-target corners in images (OpenCV) and write a measurement file",
+        """
+        Detect the model's target (a chessboard, or a grid of squares like Zhang's) in every image
+        with OpenCV and write its corners as image_point measurements, one configuration per
+        image (named after the file).  Needs OpenCV: pip install 'mbcal[vision]'.  Exit status 1
+        when the target was not found in some image (they are listed).
+        """,
+        """
+        mbcal detect views/*.png --target models/camera_calibration.mdl -o corners.json
+        """,
+        cmd_detect,
+    )
+    p.add_argument("images", metavar="IMAGE", nargs="+", help="images of the target")
+    p.add_argument("--target", required=True, metavar="MODEL.mdl", help="the model with the target and the camera")
+    p.add_argument("--name", metavar="TARGET", help="which target of the model (default: its only one)")
+    p.add_argument("--camera", metavar="NAME", help="the camera that took the images (default: the first)")
+    p.add_argument("--sigma", type=float, default=0.5, metavar="PX", help="σ of a detected corner (default 0.5 px)")
+    p.add_argument("-o", "--output", required=True, metavar="CORNERS.json", help="measurement file (.json or .csv)")
+    p.add_argument("-q", "--quiet", action="store_true")
+
+    p = _add(
+        sub,
+        "calibrate-camera",
+        "calibrate cameras (intrinsics, distortion, stereo pose) from target corners",
+        """
+        Camera calibration as OpenCV users know it: the target's pose in every view and the
+        cameras' intrinsics and distortion (OpenCV's model) — and for a stereo rig the second
+        camera's pose — start from Zhang's closed-form solution and are refined together.  The
+        report gives the RMS reprojection error, the RMS per view, σ of every intrinsic (scaled by
+        the residual variance, as OpenCV does) and the full calibration report; --overlay draws the
+        detected and reprojected corners on every image.
+        """,
+        """
+        mbcal calibrate-camera models/camera_calibration.mdl corners.json --overlay reprojection/ --json cam.json
+        """,
+        cmd_calibrate_camera,
+    )
+    p.add_argument("model", metavar="MODEL")
+    p.add_argument("measurements", metavar="CORNERS", nargs="+", help="measurement files (several are merged)")
+    p.add_argument(
+        "--estimate",
+        nargs="+",
+        metavar="NAME|GLOB",
+        help="unknowns (default: parameters with a search range and per-configuration ones not given)",
+    )
+    p.add_argument("--restarts", type=int, default=4, metavar="N", help="starts: Zhang's solution and N-1 random ones")
+    p.add_argument("--seed", type=int, default=0, metavar="S")
+    p.add_argument("--no-init", action="store_true", help="start from the model's nominal values, not Zhang's method")
+    p.add_argument("--image", action="append", metavar="CONFIG=PATH", help="the image of a view, for --overlay")
+    p.add_argument("--overlay", metavar="DIR", help="write each image with its detected and reprojected corners")
+    p.add_argument("--json", metavar="REPORT.json", help="write the JSON report ('-' for stdout)")
+    p.add_argument("--write-model", metavar="OUT.mdl", help="write the calibrated model")
     p.add_argument("-q", "--quiet", action="store_true")
 
     p = _add(

@@ -98,6 +98,9 @@ def write_calibrated_model(result: CalibrationResult, path, *, overwrite: bool =
 
     model = result.problem.model
     source = Path(model.path)
+    if source.suffix.lower() == ".urdf":
+        _write_from_urdf(result, source, Path(path), overwrite=overwrite)
+        return
     if not source.is_file():
         raise MbcalError(f"cannot write a calibrated model: the model was not read from a file ({model.path})")
     out = check_output(path, [model.path, *model.files], overwrite=overwrite)
@@ -147,3 +150,23 @@ def write_calibrated_model(result: CalibrationResult, path, *, overwrite: bool =
         body += "\n# Calibrated values of parameters declared elsewhere (includes, templates, index ranges):\n"
         body += "\n".join(overrides) + "\n"
     atomic_write(out, body)
+
+
+def _write_from_urdf(result, source: Path, out: Path, *, overwrite: bool) -> None:
+    """A model read from a URDF: a calibrated URDF (offsets folded into the joint origins), or
+    the model as .mdl text with the estimates as ``override`` statements."""
+    from mbcal.fileio import atomic_write, check_output
+    from mbcal.urdf import urdf_to_mdl, write_urdf
+
+    if out.suffix.lower() == ".urdf":
+        write_urdf(result, source, out, overwrite=overwrite)
+        return
+    check_output(out, [source], overwrite=overwrite)
+    text = urdf_to_mdl(source, mesh_base=out.resolve().parent)
+    lines = [f"# Calibrated by mbcal from {source.name}: estimates as overrides of the URDF's values", ""]
+    for name, value in result.values.items():
+        if "@" in name:
+            continue
+        info = result.problem.model.param(name)
+        lines.append(f"override {name} = {format_value(value, 'deg' if info.unit == 'deg' else None)}")
+    atomic_write(out, text.rstrip("\n") + "\n\n" + "\n".join(lines) + "\n")

@@ -200,8 +200,23 @@ def test_demo_runs_the_seeds_room_calibration_end_to_end(tmp_path):
     jsonschema.validate(json.loads((tmp_path / "demo" / "report.json").read_text()), schema())
 
 
-@pytest.mark.parametrize("command", ["check", "scene", "solve", "simulate", "observe", "render", "demo"])
+@pytest.mark.parametrize(
+    "command",
+    ["check", "scene", "solve", "simulate", "observe", "render", "demo", "detect", "calibrate-camera", "convert"],
+)
 def test_every_command_has_help_with_an_example(command):
     result = run(command, "--help")
     assert result.returncode == 0
     assert "example:" in result.stdout and "mbcal " + command in result.stdout
+
+
+def test_convert_writes_a_urdf_as_a_model_that_loads(tmp_path):
+    from conftest import ROOT
+
+    out = tmp_path / "arm7.mdl"
+    result = run("convert", ROOT / "tests" / "data" / "arm7.urdf", "-o", out)
+    assert result.returncode == 0, result.stderr
+    import mbcal
+
+    model = mbcal.load_model(out)
+    assert "joint1.offset" in model.names("param")

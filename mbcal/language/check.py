@@ -618,6 +618,7 @@ class _Checker:
         ranges: list[RangeInfo] = []
         shapes: list[ShapeInfo] = []
         shape_counter: dict[int, int] = {}
+        targets = []
         for d in self.deferred:
             stmt = d.stmt
             if isinstance(stmt, ast.Point):
@@ -634,7 +635,9 @@ class _Checker:
             elif isinstance(stmt, ast.RangeSensor):
                 ranges.append(self._range(stmt, d.scope, d.frame, d.name))
             elif isinstance(stmt, ast.Target):
-                points.extend(self._target(stmt, d.scope, d.frame, d.name))
+                target_pts, target = self._target(stmt, d.scope, d.frame, d.name)
+                points.extend(target_pts)
+                targets.append(target)
         params = tuple(d.info for d in sorted(self.params.values(), key=lambda d: d.index))
         model = Model(
             path=self.path,
@@ -645,6 +648,7 @@ class _Checker:
             ranges=tuple(ranges),
             shapes=tuple(shapes),
             measures=tuple(self.measures),
+            targets=tuple(targets),
             templates=tuple(self.templates),
             files=tuple(dict.fromkeys(self.files)),
             warnings=tuple(self.warnings),
@@ -849,7 +853,7 @@ class _Checker:
             max_range = float(node.value)
         return RangeInfo(name, frame, dirs, max_range, stmt.span)
 
-    def _target(self, stmt: ast.Target, scope: _Scope, frame: int, name: str) -> list[PointInfo]:
+    def _target(self, stmt: ast.Target, scope: _Scope, frame: int, name: str):
         from mbcal.language.targets import target_points
 
         return target_points(self, stmt, scope, frame, name)

@@ -25,6 +25,7 @@ __all__ = [
     "RangeInfo",
     "ShapeInfo",
     "MeshData",
+    "TargetInfo",
     "Model",
     "SHAPE_KINDS",
 ]
@@ -158,6 +159,20 @@ class RangeInfo:
 
 
 @dataclass(frozen=True, eq=False)
+class TargetInfo:
+    """A calibration target: its kind, layout and the names of its points (in detection order)."""
+
+    name: str
+    kind: str  # chessboard | grid | squares | points
+    frame: int
+    rows: int
+    cols: int
+    points: tuple[str, ...]
+    size_ratio: float = 0.0  # squares: size / pitch
+    span: SourceSpan | None = field(default=None, repr=False)
+
+
+@dataclass(frozen=True, eq=False)
 class MeshData:
     """Triangles of a mesh file, in the file's own units (before ``scale``)."""
 
@@ -194,6 +209,7 @@ class Model:
     ranges: tuple[RangeInfo, ...]
     shapes: tuple[ShapeInfo, ...]
     measures: tuple[str, ...] = ()
+    targets: tuple[TargetInfo, ...] = ()
     templates: tuple[str, ...] = ()
     files: tuple[str, ...] = ()
     warnings: tuple[str, ...] = ()
@@ -282,6 +298,19 @@ class Model:
 
     def shape_index(self, name: str) -> int:
         return self._lookup("shape", name)
+
+    def target(self, name: str | None = None) -> TargetInfo:
+        """A target by name (a unique suffix is enough); the only one when ``name`` is None."""
+        if name is None:
+            if len(self.targets) != 1:
+                listing = ", ".join(t.name for t in self.targets) or "none"
+                raise UnknownNameError(f"the model has {len(self.targets)} targets ({listing}); name one")
+            return self.targets[0]
+        full = self.resolve("frame", name)
+        for t in self.targets:
+            if t.name == full:
+                return t
+        raise UnknownNameError(f"'{name}' is not a target", hint=suggest(name, [t.name for t in self.targets]))
 
     def param(self, name: str) -> ParamInfo:
         return self.params[self.param_index(name)]

@@ -1,10 +1,15 @@
-"""Calibration targets: a frame carrying a regular grid of named points.
+"""Calibration targets: a frame carrying named points in its xy-plane.
 
-``target board = chessboard(rows = 6, cols = 9, square = 25 mm)`` declares the frame
-``board`` and its inner corners ``board.r0c0`` … ``board.r5c8``, row by row — the order in
-which OpenCV's ``findChessboardCorners`` reports them for a pattern size ``(cols, rows)``.
-The grid lies in the target's xy-plane, starting at its origin: corner (r, c) is at
-``(c·square, r·square, 0)``.  ``grid(rows, cols, dx, dy)`` is the same with separate spacings.
+* ``chessboard(rows, cols, square)``: the inner corners ``T.r0c0`` … of a chessboard, row by
+  row — the order of OpenCV's ``findChessboardCorners`` for a pattern size ``(cols, rows)``;
+  corner (r, c) is at ``(c·square, r·square, 0)``.
+* ``grid(rows, cols, dx, dy = dx)``: the same with separate spacings.
+* ``squares(rows, cols, size, pitch)``: separated black squares (Zhang's pattern); square (r, c)
+  has its corner 0 at ``(c·pitch, r·pitch, 0)`` and corners ``T.r{r}c{c}k{k}``, k = 0..3 at
+  offsets (0, 0), (size, 0), (size, size), (0, size).
+* ``points(file, scale = 1 m, columns = 2)``: points read from a text file of numbers (``#``
+  comments allowed), taken ``columns`` (2: x y, z = 0; or 3) at a time in file order, times
+  ``scale``; named ``T.p0``, ``T.p1``, …  The file is relative to the model file.
 """
 
 from __future__ import annotations
@@ -16,7 +21,7 @@ import numpy as np
 from mbcal.errors import DimensionError, UndefinedNameError, suggest
 from mbcal.language import ast
 from mbcal.language.ir import SCALAR, VECTOR, Const, make_op
-from mbcal.language.model import PointInfo
+from mbcal.language.model import PointInfo, TargetInfo
 from mbcal.units import DIMENSIONLESS, LENGTH
 
 if TYPE_CHECKING:
@@ -25,7 +30,10 @@ if TYPE_CHECKING:
 TARGET_KINDS = {
     "chessboard": [("rows", True), ("cols", True), ("square", True)],
     "grid": [("rows", True), ("cols", True), ("dx", True), ("dy", False)],
+    "squares": [("rows", True), ("cols", True), ("size", True), ("pitch", True)],
+    "points": [("file", True), ("scale", False), ("columns", False)],
 }
+SQUARE_CORNERS = ((0.0, 0.0), (1.0, 0.0), (1.0, 1.0), (0.0, 1.0))
 MAX_TARGET_POINTS = 100_000
 
 
@@ -34,8 +42,28 @@ def corner_name(target: str, row: int, col: int) -> str:
     return f"{target}.r{row}c{col}"
 
 
-def target_points(checker: _Checker, stmt: ast.Target, scope: _Scope, frame: int, name: str) -> list[PointInfo]:
-    """Compile a ``target`` statement into its named points."""
+def target_points(
+    checker: _Checker, stmt: ast.Target, scope: _Scope, frame: int, name: str
+) -> tuple[list[PointInfo], TargetInfo]:
+    """Compile a ``target`` statement into its named points and its description."""
+    points = _points(checker, stmt, scope, frame, name)
+    rows = cols = 0
+    ratio = 0.0
+    if stmt.kind != "points":
+        from mbcal.language.check import _bind
+
+        bound = _bind(stmt.kind, TARGET_KINDS[stmt.kind], stmt.args, stmt.kwargs, stmt.span)
+        rows, cols = (int(float(checker.compile(bound[k], scope).value)) for k in ("rows", "cols"))
+        if stmt.kind == "squares":
+            size = checker.compile(bound["size"], scope)
+            pitch = checker.compile(bound["pitch"], scope)
+            if isinstance(size, Const) and isinstance(pitch, Const):
+                ratio = float(size.value) / float(pitch.value)
+    info = TargetInfo(name, stmt.kind, frame, rows, cols, tuple(p.name for p in points), ratio, stmt.span)
+    return points, info
+
+
+def _points(checker: _Checker, stmt: ast.Target, scope: _Scope, frame: int, name: str) -> list[PointInfo]:
     from mbcal.language.check import _bind
 
     if stmt.kind not in TARGET_KINDS:
@@ -45,6 +73,8 @@ def target_points(checker: _Checker, stmt: ast.Target, scope: _Scope, frame: int
             hint=suggest(stmt.kind, TARGET_KINDS),
         )
     bound = _bind(stmt.kind, TARGET_KINDS[stmt.kind], stmt.args, stmt.kwargs, stmt.span)
+    if stmt.kind == "points":
+        return _file_points(checker, stmt, bound, scope, frame, name)
     counts = []
     for key in ("rows", "cols"):
         node = checker.arg(bound, key, scope, dim=DIMENSIONLESS, what=f"'{key}'")
@@ -54,6 +84,8 @@ def target_points(checker: _Checker, stmt: ast.Target, scope: _Scope, frame: int
     rows, cols = counts
     if rows * cols > MAX_TARGET_POINTS:
         raise DimensionError(f"a target has at most {MAX_TARGET_POINTS} points, got {rows * cols}", stmt.span)
+    if stmt.kind == "squares":
+        return _square_points(checker, stmt, bound, scope, frame, name, rows, cols)
     if stmt.kind == "chessboard":
         dx = dy = checker.arg(bound, "square", scope, dim=LENGTH, what="the square size")
     else:
@@ -71,4 +103,77 @@ def target_points(checker: _Checker, stmt: ast.Target, scope: _Scope, frame: int
             y = make_op("mul", [Const(kind=SCALAR, dim=None, value=np.asarray(float(r))), dy], SCALAR, LENGTH)
             pos = make_op("vec", [x, y, zero], VECTOR, LENGTH, 3, stmt.span)
             points.append(PointInfo(corner_name(name, r, c), frame, pos, stmt.span))
+    return points
+
+
+def _scaled(value: float, length) -> object:
+    return make_op("mul", [Const(kind=SCALAR, dim=None, value=np.asarray(float(value))), length], SCALAR, LENGTH)
+
+
+def _square_points(checker, stmt, bound, scope, frame, name, rows, cols) -> list[PointInfo]:
+    size = checker.arg(bound, "size", scope, dim=LENGTH, what="the square size")
+    pitch = checker.arg(bound, "pitch", scope, dim=LENGTH, what="the pitch (distance between squares)")
+    for node, key in ((size, "size"), (pitch, "pitch")):
+        if isinstance(node, Const) and not float(node.value) > 0:
+            raise DimensionError(f"'{key}' must be positive", bound[key].span)
+    if isinstance(size, Const) and isinstance(pitch, Const) and not float(size.value) < float(pitch.value):
+        raise DimensionError("the squares must be smaller than their pitch (or they touch)", bound["size"].span)
+    zero = Const(kind=SCALAR, dim=None, value=np.asarray(0.0))
+    points = []
+    for r in range(rows):
+        for c in range(cols):
+            for k, (a, b) in enumerate(SQUARE_CORNERS):
+                x = make_op("add", [_scaled(c, pitch), _scaled(a, size)], SCALAR, LENGTH)
+                y = make_op("add", [_scaled(r, pitch), _scaled(b, size)], SCALAR, LENGTH)
+                pos = make_op("vec", [x, y, zero], VECTOR, LENGTH, 3, stmt.span)
+                points.append(PointInfo(f"{name}.r{r}c{c}k{k}", frame, pos, stmt.span))
+    return points
+
+
+def _file_points(checker, stmt, bound, scope, frame, name) -> list[PointInfo]:
+    from pathlib import Path
+
+    from mbcal.errors import MdlError, MdlTypeError
+
+    expr = bound["file"]
+    if not isinstance(expr, ast.String):
+        raise MdlTypeError('points() needs a file name in quotes: points("corners.txt")', expr.span)
+    base = Path(expr.span.path).resolve().parent if expr.span.path != "<string>" else Path.cwd()
+    path = base / expr.value
+    scale = checker.arg(bound, "scale", scope, dim=LENGTH, what="the scale") if "scale" in bound else None
+    columns = 2
+    if "columns" in bound:
+        node = checker.arg(bound, "columns", scope, dim=DIMENSIONLESS, what="'columns'")
+        if not isinstance(node, Const) or float(node.value) not in (2.0, 3.0):
+            raise DimensionError("'columns' is 2 (x y) or 3 (x y z)", bound["columns"].span)
+        columns = int(node.value)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise MdlError(f"point file not found: {path}", expr.span) from None
+    except (OSError, UnicodeDecodeError) as err:
+        raise MdlError(f"cannot read point file {path}: {err}", expr.span) from None
+    values = []
+    for line_no, line in enumerate(text.splitlines(), 1):
+        for item in line.split("#", 1)[0].replace(",", " ").split():
+            try:
+                v = float(item)
+            except ValueError:
+                raise MdlError(f"{path}:{line_no}: not a number: {item!r}", expr.span) from None
+            if not np.isfinite(v):
+                raise MdlError(f"{path}:{line_no}: not a finite number: {item!r}", expr.span)
+            values.append(v)
+    if not values or len(values) % columns:
+        raise MdlError(f"{path} holds {len(values)} numbers: not a whole number of {columns}-D points", expr.span)
+    if len(values) // columns > MAX_TARGET_POINTS:
+        raise DimensionError(f"a target has at most {MAX_TARGET_POINTS} points", expr.span)
+    coords = np.asarray(values).reshape(-1, columns)
+    points = []
+    for k, row in enumerate(coords):
+        xyz = list(row) + [0.0] * (3 - columns)
+        items = [
+            _scaled(v, scale) if scale is not None else Const(kind=SCALAR, dim=LENGTH, value=np.asarray(v)) for v in xyz
+        ]
+        pos = make_op("vec", items, VECTOR, LENGTH, 3, stmt.span)
+        points.append(PointInfo(f"{name}.p{k}", frame, pos, stmt.span))
     return points

@@ -48,6 +48,7 @@ __all__ = [
     "MeasurementSet",
     "read_measurements",
     "write_measurements",
+    "merge_measurements",
     "parse_quantity",
     "DEFAULT_CONFIG",
     "MAX_MEASUREMENTS",
@@ -124,6 +125,7 @@ class MeasurementSet:
     known: dict[str, float] = field(default_factory=dict)
     configurations: dict[str, dict[str, float]] = field(default_factory=dict)
     path: str | None = None
+    images: dict[str, str] = field(default_factory=dict)  # configuration → image file it was measured in
 
     def __len__(self) -> int:
         return len(self.measurements)
@@ -162,7 +164,9 @@ class MeasurementSet:
     def subset(self, keep: Iterable[bool]) -> MeasurementSet:
         """Only the measurements where ``keep`` is true."""
         ms = [m for m, k in zip(self.measurements, keep) if k]
-        return MeasurementSet(ms, dict(self.known), {k: dict(v) for k, v in self.configurations.items()}, self.path)
+        return MeasurementSet(
+            ms, dict(self.known), {k: dict(v) for k, v in self.configurations.items()}, self.path, dict(self.images)
+        )
 
     def require_values(self) -> None:
         """Raise if any measurement lacks a value (the file is a plan)."""
@@ -253,6 +257,7 @@ class _Builder:
         self.ids: dict[str, SourceSpan | None] = {}
         self.known: dict[str, float] = {}
         self.configurations: dict[str, dict[str, float]] = {}
+        self.images: dict[str, str] = {}
         self.declared = set(model.measures) if model is not None else set()
 
     def known_value(self, name: str, value: Any, config: str | None, where: SourceSpan | None) -> None:
@@ -410,7 +415,7 @@ class _Builder:
     def result(self) -> MeasurementSet:
         if not self.measurements:
             raise MeasurementFileError("no measurements", SourceSpan(self.path, 1, 1))
-        return MeasurementSet(self.measurements, self.known, self.configurations, self.path)
+        return MeasurementSet(self.measurements, self.known, self.configurations, self.path, self.images)
 
 
 # ---- CSV ---------------------------------------------------------------------------------------------
@@ -515,7 +520,7 @@ def _read_json(text: str, path: str, builder: _Builder) -> None:
         raise MeasurementFileError(
             "the file must hold an object with 'measurements' (or a list)", SourceSpan(path, 1, 1)
         )
-    unknown = set(doc) - {"measurements", "known", "configurations", "format", "version", "model", "comment"}
+    unknown = set(doc) - {"measurements", "known", "configurations", "images", "format", "version", "model", "comment"}
     if unknown:
         key = sorted(unknown)[0]
         raise MeasurementFileError(
@@ -538,6 +543,11 @@ def _read_json(text: str, path: str, builder: _Builder) -> None:
         builder.configurations.setdefault(str(config), {})
         for name, value in values.items():
             builder.known_value(name, value, str(config), top)
+    images = doc.get("images", {})
+    if not isinstance(images, dict) or not all(isinstance(v, str) for v in images.values()):
+        raise MeasurementFileError("'images' must map configuration names to image files", top)
+    base = Path(path).resolve().parent
+    builder.images = {str(k): str(base / v) for k, v in images.items()}
     items = doc.get("measurements")
     if not isinstance(items, list):
         raise MeasurementFileError("'measurements' must be a list", top)
@@ -603,6 +613,36 @@ def read_measurements(path: str | os.PathLike[str], model=None) -> MeasurementSe
     return builder.result()
 
 
+def merge_measurements(sets: Sequence[MeasurementSet]) -> MeasurementSet:
+    """One set from several files: measurements appended, known values and images merged.
+
+    Configurations with the same name are the same configuration.  Raises when two files use
+    the same measurement id or give different known values for the same parameter.
+    """
+    if len(sets) == 1:
+        return sets[0]
+    out = MeasurementSet([], {}, {}, ", ".join(s.path or "<records>" for s in sets), {})
+    ids: dict[str, SourceSpan | None] = {}
+    for ms in sets:
+        for m in ms:
+            if m.id in ids:
+                raise MeasurementFileError(f"duplicate id '{m.id}' (first at {ids[m.id]})", m.where)
+            ids[m.id] = m.where
+            out.measurements.append(m)
+        for name, value in ms.known.items():
+            if name in out.known and out.known[name] != value:
+                raise MeasurementFileError(f"'{name}' is known as {out.known[name]} and as {value} in {ms.path}")
+            out.known[name] = value
+        for config, values in ms.configurations.items():
+            target = out.configurations.setdefault(config, {})
+            for name, value in values.items():
+                if name in target and target[name] != value:
+                    raise MeasurementFileError(f"'{name}@{config}' is given two different values ({ms.path})")
+                target[name] = value
+        out.images.update(ms.images)
+    return out
+
+
 def measurements_from_records(
     records: Iterable[Mapping[str, Any]], model=None, *, known=None, configurations=None
 ) -> MeasurementSet:
@@ -652,6 +692,11 @@ def write_measurements(ms: MeasurementSet, path: str | os.PathLike[str]) -> None
             doc["known"] = ms.known
         if ms.configurations:
             doc["configurations"] = ms.configurations
+        if ms.images:
+            import os
+
+            folder = p.resolve().parent
+            doc["images"] = {k: os.path.relpath(v, folder) for k, v in ms.images.items()}
         doc["measurements"] = records
         atomic_write(p, json.dumps(doc, indent=1) + "\n")
         return

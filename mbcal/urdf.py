@@ -1,0 +1,692 @@
+"""URDF in, URDF out: robot descriptions as mbcal models, and calibrated URDFs back.
+
+Reading
+-------
+:func:`urdf_to_mdl` reads a URDF with `yourdfpy <https://github.com/clemense/yourdfpy>`_
+(kinematics only: meshes are neither loaded nor required by yourdfpy) and writes the equivalent
+``.mdl`` text; :func:`load_urdf` checks that text into a :class:`~mbcal.language.model.Model`
+(``mbcal.load_model`` calls it for ``*.urdf`` files).  What the text holds:
+
+* the link tree as nested ``link`` frames, the root link at the top level.  URDF names are
+  turned into identifiers (``[A-Za-z_][A-Za-z0-9_]*``): other characters become ``_``, a
+  leading digit gets a ``_`` in front, reserved words (and ``origin`` for links) get a ``_``
+  behind, clashes get ``_2``, ``_3``, ...  :func:`urdf_names` returns the mapping; every frame
+  and parameter block names its URDF original in a comment.
+* for every joint ``J`` (mdl name) its origin as six parameters ``J.x``, ``J.y``, ``J.z`` (m,
+  search range ±2 cm) and ``J.roll``, ``J.pitch``, ``J.yaw`` (deg, ±2 deg), the URDF values being
+  the nominal ones, and the child frame ``at pose(J.x, J.y, J.z, J.roll, J.pitch, J.yaw)``.  The
+  angles are recovered from yourdfpy's origin matrix (fixed-axis x-y-z, as URDF), so an
+  ``rpy`` written outside (-180°, 180°] comes back as the equivalent triple.
+* revolute, continuous and prismatic joints: ``param J.q = 0 deg per configuration`` (m for
+  prismatic) — the joint reading, given per configuration in a measurement file — and
+  ``param J.offset = 0 deg in [-5 deg, 5 deg]`` (±5 mm for prismatic), the encoder's unknown
+  zero; inside the child frame ``joint revolute(AXIS, J.q, offset = J.offset, lower = ...,
+  upper = ...)`` with the URDF axis and limits.  A ``<mimic>`` joint moves by
+  ``multiplier · (the other joint's reading) + offset`` and has an ``offset`` parameter but no
+  reading.  Fixed joints have origin parameters but no joint statement; floating and planar
+  joints are refused (:class:`UrdfError` naming the joint).
+* every ``<visual>`` as a ``shape`` (box, cylinder, sphere, mesh) at its constant origin.
+  URDF cylinders are centred with their axis along z, as mbcal's.  What cannot be shown (a
+  mesh file that cannot be found or read, a non-positive size) is left out with a comment:
+  the kinematics still load.  ``<collision>`` and ``<inertial>`` elements are ignored.
+* a point ``origin`` at every link's origin (``<link>.origin``, so links can be measured), and
+  ``measure image_point, point3d, distance, angle``.
+
+Mesh file names are resolved here, not by yourdfpy: ``file://PATH`` is PATH; a relative name
+is relative to the URDF's folder; ``package://PKG/REST`` is looked up, first hit wins, in
+every ancestor folder of the URDF named ``PKG`` (nearest first), then in ``D/PKG/REST`` for
+``D`` the URDF's folder and each of its ancestors, then as ``REST`` relative to the URDF's
+folder.  The ``.mdl`` text names meshes relative to the URDF's folder (or ``mesh_base``).
+
+Writing
+-------
+:func:`write_urdf` writes a calibrated copy of a URDF: it edits the input's XML tree with lxml
+(everything else — comments, inertials, collisions, materials, formatting — is kept) and sets
+each joint's ``<origin xyz rpy>`` from the estimated ``J.x`` ... ``J.yaw``.  Encoder offsets
+are **folded into the origin**, exactly: a revolute joint's origin becomes
+``origin · Rot(axis, offset)`` and a prismatic joint's ``origin · Trans(axis · offset)``, so the
+same readings ``q`` give the calibrated kinematics in any URDF consumer.  Each edited joint
+gets an XML comment with the offset and the previous origin; joints without estimates are
+left untouched.  Relative mesh file names are rewritten when the output is in another folder.
+The input is never overwritten; the output is written atomically.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from mbcal.errors import MdlError, SourceSpan
+
+if TYPE_CHECKING:
+    from mbcal.api import CalibrationResult
+    from mbcal.language.model import Model
+
+__all__ = ["urdf_to_mdl", "load_urdf", "write_urdf", "urdf_names", "resolve_mesh", "UrdfError"]
+
+MOVING = ("revolute", "continuous", "prismatic")
+ORIGIN_FIELDS = ("x", "y", "z", "roll", "pitch", "yaw")
+MEASURES = "image_point, point3d, distance, angle"
+MESH_SUFFIXES = (".stl", ".obj", ".ply", ".glb", ".gltf", ".off", ".dae")
+
+
+class UrdfError(MdlError):
+    """A URDF file cannot be read or turned into a model."""
+
+
+# ---- reading ------------------------------------------------------------------------------------
+
+
+@dataclass
+class _Robot:
+    """A URDF as yourdfpy reads it, with mbcal names and the tree structure."""
+
+    path: Path
+    urdf: Any  # yourdfpy.URDF
+    tree: Any  # lxml ElementTree (comments kept), to locate lines and to edit
+    lines: dict[tuple[str, str], int]
+    links: dict[str, str] = field(default_factory=dict)  # URDF name → mdl name
+    joints: dict[str, str] = field(default_factory=dict)
+    root: str = ""
+    children: dict[str, list[Any]] = field(default_factory=dict)  # link → joints whose parent it is
+
+    def span(self, kind: str, name: str) -> SourceSpan | None:
+        line = self.lines.get((kind, name))
+        return SourceSpan(str(self.path), line, 1) if line else None
+
+    def error(self, message: str, kind: str | None = None, name: str | None = None) -> UrdfError:
+        span = self.span(kind, name) if kind and name is not None else None
+        return UrdfError(message if span else f"{self.path}: {message}", span)
+
+
+def _identifier(name: str, taken: set[str], avoid: frozenset[str] | set[str] = frozenset()) -> str:
+    from mbcal.language.check import RESERVED
+
+    text = re.sub(r"[^A-Za-z0-9_]", "_", name) or "_"
+    if text[0].isdigit():
+        text = "_" + text
+    if text in RESERVED or text in avoid:
+        text += "_"
+    candidate, k = text, 2
+    while candidate in taken:
+        candidate = f"{text}_{k}"
+        k += 1
+    taken.add(candidate)
+    return candidate
+
+
+def _read(path: str | os.PathLike[str]) -> _Robot:
+    """Parse a URDF (strict XML first, for line numbers), then with yourdfpy; check the tree."""
+    from lxml import etree
+
+    path = Path(path)
+    if not path.is_file():
+        raise UrdfError(f"{path}: URDF file not found")
+    try:
+        tree = etree.parse(str(path), etree.XMLParser(remove_blank_text=False, resolve_entities=False))
+    except etree.XMLSyntaxError as err:
+        line, column = err.position or (err.lineno, 1)
+        message = f"malformed XML: {err.msg}"
+        if line:
+            raise UrdfError(message, SourceSpan(str(path), int(line), max(int(column or 1), 1))) from None
+        raise UrdfError(f"{path}: {message}") from None
+    except OSError as err:
+        raise UrdfError(f"{path}: cannot read: {err}") from None
+    root = tree.getroot()
+    if root.tag != "robot":
+        raise UrdfError(
+            f"the root element is <{root.tag}>, not <robot>", SourceSpan(str(path), root.sourceline or 1, 1)
+        )
+    lines: dict[tuple[str, str], int] = {}
+    for kind in ("link", "joint"):
+        for element in root.iterchildren(kind):
+            name = element.get("name")
+            if name is not None and element.sourceline:
+                lines.setdefault((kind, name), element.sourceline)
+
+    import yourdfpy
+
+    try:
+        urdf = yourdfpy.URDF.load(
+            str(path), build_scene_graph=False, load_meshes=False, filename_handler=lambda name: name
+        )
+    except Exception as err:  # yourdfpy raises KeyError, ValueError, AttributeError, ... on bad input
+        detail = f"'{err.args[0]}' is missing" if isinstance(err, KeyError) else str(err)
+        raise UrdfError(f"{path}: not a valid URDF ({type(err).__name__}: {detail})") from None
+
+    robot = _Robot(path, urdf, tree, lines)
+    links = [link.name for link in urdf.robot.links]
+    if not links:
+        raise robot.error("the robot has no links")
+    seen: set[str] = set()
+    for name in links:
+        if name in seen:
+            raise robot.error(f"link '{name}' is declared twice", "link", name)
+        seen.add(name)
+    parent_of: dict[str, str] = {}
+    joint_seen: set[str] = set()
+    for joint in urdf.robot.joints:
+        if joint.name in joint_seen:
+            raise robot.error(f"joint '{joint.name}' is declared twice", "joint", joint.name)
+        joint_seen.add(joint.name)
+        for role, link in (("parent", joint.parent), ("child", joint.child)):
+            if not link:
+                raise robot.error(f"joint '{joint.name}' has no {role} link", "joint", joint.name)
+            if link not in seen:
+                raise robot.error(f"joint '{joint.name}' refers to a missing {role} link '{link}'", "joint", joint.name)
+        if joint.type in ("floating", "planar"):
+            raise robot.error(
+                f"joint '{joint.name}' is {joint.type}: mbcal models revolute, continuous, prismatic "
+                "and fixed joints only",
+                "joint",
+                joint.name,
+            )
+        if joint.type not in (*MOVING, "fixed"):
+            raise robot.error(f"joint '{joint.name}' has an unknown type '{joint.type}'", "joint", joint.name)
+        if joint.child in parent_of:
+            raise robot.error(
+                f"link '{joint.child}' is the child of two joints ('{parent_of[joint.child]}' and '{joint.name}')",
+                "joint",
+                joint.name,
+            )
+        parent_of[joint.child] = joint.name
+        robot.children.setdefault(joint.parent, []).append(joint)
+    roots = [name for name in links if name not in parent_of]
+    if len(roots) != 1:
+        what = "no root link (the joints form a cycle)" if not roots else f"several root links: {', '.join(roots)}"
+        raise robot.error(f"the links do not form one tree: {what}")
+    robot.root = roots[0]
+    order = []
+    stack = [robot.root]
+    while stack:
+        link = stack.pop()
+        order.append(link)
+        stack.extend(reversed([j.child for j in robot.children.get(link, [])]))
+    if len(order) != len(links):
+        lost = [name for name in links if name not in set(order)]
+        raise robot.error(f"the joints form a cycle through the links {', '.join(lost)}")
+    joints_by_name = {j.name: j for j in urdf.robot.joints}
+    for joint in urdf.robot.joints:
+        if joint.mimic is not None:
+            other = joints_by_name.get(joint.mimic.joint)
+            if other is None or other.type not in MOVING or other.mimic is not None:
+                raise robot.error(
+                    f"joint '{joint.name}' mimics '{joint.mimic.joint}', which is not a moving joint without <mimic>",
+                    "joint",
+                    joint.name,
+                )
+            if joint.type not in MOVING:
+                raise robot.error(f"joint '{joint.name}' is {joint.type} but has <mimic>", "joint", joint.name)
+    taken: set[str] = set()
+    for name in order:
+        robot.links[name] = _identifier(name, taken, {"origin"})
+    taken = set()
+    for joint in urdf.robot.joints:
+        robot.joints[joint.name] = _identifier(joint.name, taken)
+    return robot
+
+
+def urdf_names(path: str | os.PathLike[str]) -> dict[str, dict[str, str]]:
+    """The URDF → mdl name mapping: ``{"link": {...}, "joint": {...}}``."""
+    robot = _read(path)
+    return {"link": dict(robot.links), "joint": dict(robot.joints)}
+
+
+def resolve_mesh(filename: str, urdf_path: str | os.PathLike[str]) -> Path | None:
+    """The file a URDF mesh name refers to, or None when none exists (see the module doc)."""
+    base = Path(urdf_path).resolve().parent
+    if filename.startswith("file://"):
+        candidates = [Path(filename[len("file://") :])]
+    elif filename.startswith("package://"):
+        package, _, rest = filename[len("package://") :].partition("/")
+        folders = [base, *base.parents]
+        candidates = [d / rest for d in folders if d.name == package]
+        candidates += [d / package / rest for d in folders]
+        candidates.append(base / rest)
+    elif "://" in filename:
+        return None
+    else:
+        candidates = [base / filename]
+    for candidate in candidates:
+        if candidate.is_file():
+            return candidate.resolve()
+    return None
+
+
+# ---- .mdl text ------------------------------------------------------------------------------------
+
+
+def _num(value: float) -> str:
+    value = float(value)
+    if value == 0.0:
+        return "0"
+    return f"{value:.15g}"
+
+
+def _length(value: float) -> str:
+    return f"{_num(value)} m"
+
+
+def _angle(value: float) -> str:
+    return f"{_num(math.degrees(value))} deg"
+
+
+def _xyz_rpy(matrix: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Translation and URDF roll-pitch-yaw of a 4×4 origin (None: the identity)."""
+    import trimesh.transformations as tra
+
+    if matrix is None:
+        return np.zeros(3), np.zeros(3)
+    matrix = np.asarray(matrix, dtype=float)
+    return matrix[:3, 3].copy(), np.array(tra.euler_from_matrix(matrix, "sxyz"), dtype=float)
+
+
+def _pose_matrix(xyz, rpy) -> np.ndarray:
+    import trimesh.transformations as tra
+
+    matrix = tra.euler_matrix(float(rpy[0]), float(rpy[1]), float(rpy[2]), "sxyz")
+    matrix[:3, 3] = np.asarray(xyz, dtype=float)
+    return matrix
+
+
+def _constant_pose(matrix: np.ndarray | None) -> str:
+    """`` at pose(...)`` for a constant origin, or nothing for the identity."""
+    if matrix is None or np.allclose(matrix, np.eye(4), rtol=0.0, atol=1e-15):
+        return ""
+    xyz, rpy = _xyz_rpy(matrix)
+    return " at pose(" + ", ".join([*map(_length, xyz), *map(_angle, rpy)]) + ")"
+
+
+def _axis(axis: np.ndarray) -> str:
+    axis = np.asarray(axis, dtype=float)
+    for i, letter in enumerate("xyz"):
+        unit = np.zeros(3)
+        unit[i] = 1.0
+        if np.array_equal(axis, unit):
+            return letter
+        if np.array_equal(axis, -unit):
+            return "-" + letter
+    return "(" + ", ".join(_num(v) for v in axis) + ")"
+
+
+def _comment(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _visual(visual, index: int, robot: _Robot, taken: set[str], base: Path) -> str:
+    """One ``shape`` statement, or a comment saying why a visual is left out."""
+    from mbcal.errors import MeshError
+    from mbcal.language.check import load_mesh
+
+    geometry = visual.geometry
+    label = f"visual {index}" + (f" '{visual.name}'" if visual.name else "")
+    if geometry is None:
+        return f"# {label}: no geometry, left out"
+    if geometry.box is not None:
+        size = np.asarray(geometry.box.size, dtype=float)
+        kind, dims = "box", [_length(v) for v in size]
+        ok = size.shape == (3,) and bool(np.all(size > 0))
+    elif geometry.cylinder is not None:
+        size = np.array([geometry.cylinder.radius, geometry.cylinder.length], dtype=float)
+        kind, dims, ok = "cylinder", [_length(v) for v in size], bool(np.all(size > 0))
+    elif geometry.sphere is not None:
+        size = np.array([geometry.sphere.radius], dtype=float)
+        kind, dims, ok = "sphere", [_length(v) for v in size], bool(np.all(size > 0))
+    elif geometry.mesh is not None:
+        filename = geometry.mesh.filename
+        if not filename:
+            return f"# {label}: a mesh without a file name, left out"
+        found = resolve_mesh(filename, robot.path)
+        if found is None:
+            return f"# {label}: mesh file not found, left out: {_comment(filename)}"
+        if found.suffix.lower() not in MESH_SUFFIXES:
+            return f"# {label}: mesh format '{found.suffix}' is not supported, left out: {_comment(filename)}"
+        try:
+            load_mesh(found, None)
+        except MeshError as err:
+            return f"# {label}: mesh cannot be read, left out: {_comment(err.message)}"
+        scale = np.ones(3) if geometry.mesh.scale is None else np.asarray(geometry.mesh.scale, dtype=float).ravel()
+        if scale.size == 1:
+            scale = np.repeat(scale, 3)
+        if scale.size != 3 or not np.all(scale > 0):
+            return f"# {label}: mesh scale {_comment(scale)} is not positive, left out"
+        try:
+            shown = Path(os.path.relpath(found, base)).as_posix()
+        except ValueError:  # another drive
+            shown = found.as_posix()
+        kind = "mesh"
+        dims = [json.dumps(shown, ensure_ascii=False), "scale = (" + ", ".join(_num(v) for v in scale) + ")"]
+        ok = True
+    else:
+        return f"# {label}: geometry not supported, left out"
+    if not ok:
+        return f"# {label}: a {kind} with an invalid size (not positive), left out"
+    name = _identifier(visual.name, taken) if visual.name else _identifier(f"visual{index}", taken)
+    note = f"  # URDF visual '{_comment(visual.name)}'" if visual.name and visual.name != name else ""
+    return f"shape {name} = {kind}({', '.join(dims)}){_constant_pose(visual.origin)}{note}"
+
+
+def _joint_params(robot: _Robot, joint, ranges: dict[str, float]) -> list[str]:
+    j = robot.joints[joint.name]
+    xyz, rpy = _xyz_rpy(joint.origin)
+    dl, da = ranges["origin_length"], ranges["origin_angle"]
+    renamed = f" (mdl name '{j}')" if j != joint.name else ""
+    lines = [
+        f"# joint '{_comment(joint.name)}'{renamed}: {joint.type}, "
+        f"'{_comment(joint.parent)}' -> '{_comment(joint.child)}'"
+    ]
+    for name, value in zip(ORIGIN_FIELDS[:3], xyz):
+        lines.append(f"param {j}.{name} = {_length(value)} in [{_length(value - dl)}, {_length(value + dl)}]")
+    for name, value in zip(ORIGIN_FIELDS[3:], rpy):
+        lines.append(f"param {j}.{name} = {_angle(value)} in [{_angle(value - da)}, {_angle(value + da)}]")
+    if joint.type in MOVING:
+        if joint.type == "prismatic":
+            zero, d = "0 m", ranges["offset_length"]
+            limits = f"[{_length(-d)}, {_length(d)}]"
+        else:
+            zero, d = "0 deg", ranges["offset_angle"]
+            limits = f"[{_angle(-d)}, {_angle(d)}]"
+        if joint.mimic is None:
+            lines.append(f"param {j}.q = {zero} per configuration")
+        lines.append(f"param {j}.offset = {zero} in {limits}")
+    return lines
+
+
+def _joint_statement(robot: _Robot, joint, by_name: dict[str, Any]) -> str:
+    j = robot.joints[joint.name]
+    unit = "m" if joint.type == "prismatic" else "rad"
+    if joint.mimic is None:
+        q = f"{j}.q"
+    else:
+        other = by_name[joint.mimic.joint]
+        source = "m" if other.type == "prismatic" else "rad"
+        multiplier = 1.0 if joint.mimic.multiplier is None else float(joint.mimic.multiplier)
+        shift = 0.0 if joint.mimic.offset is None else float(joint.mimic.offset)
+        q = f"{_num(multiplier)} * ({robot.joints[other.name]}.q / (1 {source})) * (1 {unit}) + {_num(shift)} {unit}"
+    args = [_axis(joint.axis), q, f"offset = {j}.offset"]
+    limit = joint.limit
+    if joint.type != "continuous" and limit is not None:
+        show = _length if joint.type == "prismatic" else _angle
+        if limit.lower is not None:
+            args.append(f"lower = {show(limit.lower)}")
+        if limit.upper is not None:
+            args.append(f"upper = {show(limit.upper)}")
+    return f"joint {joint.type}({', '.join(args)})"
+
+
+def urdf_to_mdl(
+    path: str | os.PathLike[str],
+    *,
+    mesh_base: str | os.PathLike[str] | None = None,
+    origin_length: float = 0.02,
+    origin_angle: float = math.radians(2.0),
+    offset_angle: float = math.radians(5.0),
+    offset_length: float = 0.005,
+) -> str:
+    """The ``.mdl`` text of a URDF file (see the module doc for what it holds).
+
+    Parameters
+    ----------
+    path : path
+        The URDF file.
+    mesh_base : path, optional
+        The folder mesh paths are written relative to (default: the URDF's folder; the text
+        then works as a model file saved beside the URDF).
+    origin_length, origin_angle : float
+        Half-widths (m, rad) of the search ranges of the joint origins around their URDF values.
+    offset_angle, offset_length : float
+        Half-widths (rad, m) of the search ranges of the revolute and prismatic joint offsets.
+
+    Raises
+    ------
+    UrdfError
+        The file is not well-formed XML, not a valid URDF, not one tree of links, or has a
+        floating or planar joint; with the file and, where known, the line.
+    """
+    robot = _read(path)
+    ranges = {
+        "origin_length": origin_length,
+        "origin_angle": origin_angle,
+        "offset_angle": offset_angle,
+        "offset_length": offset_length,
+    }
+    base = Path(mesh_base).resolve() if mesh_base is not None else robot.path.resolve().parent
+    urdf = robot.urdf
+    by_name = {j.name: j for j in urdf.robot.joints}
+    link_map = {link.name: link for link in urdf.robot.links}
+    out = [
+        f"# Generated by mbcal from {robot.path.name} (robot '{_comment(urdf.robot.name)}').",
+        "# Lengths in m, angles in deg.  Per joint J: J.x J.y J.z J.roll J.pitch J.yaw (the origin),",
+        "# J.q (the reading, per configuration) and J.offset (the encoder's zero).",
+    ]
+    renamed = [
+        (kind, a, b) for kind, table in (("link", robot.links), ("joint", robot.joints)) for a, b in table.items()
+    ]
+    renamed = [item for item in renamed if item[1] != item[2]]
+    if renamed:
+        out.append("# Renamed (URDF -> mdl):")
+        out.extend(f"#   {kind} '{_comment(a)}' -> {b}" for kind, a, b in renamed)
+    out.append("")
+    order: list[Any] = []
+    stack = list(reversed(robot.children.get(robot.root, [])))
+    while stack:
+        joint = stack.pop()
+        order.append(joint)
+        stack.extend(reversed(robot.children.get(joint.child, [])))
+    for joint in order:
+        out.extend(_joint_params(robot, joint, ranges))
+        out.append("")
+
+    def frame(name: str, joint, depth: int) -> None:
+        pad = "  " * depth
+        mdl = robot.links[name]
+        note = f"URDF link '{_comment(name)}'"
+        if joint is None:
+            out.append(f"{pad}link {mdl} {{  # {note}, the root")
+        else:
+            j = robot.joints[joint.name]
+            pose = ", ".join(f"{j}.{f}" for f in ORIGIN_FIELDS)
+            out.append(f"{pad}link {mdl} at pose({pose}) {{  # {note}, joint '{_comment(joint.name)}' ({joint.type})")
+        inner = pad + "  "
+        if joint is not None and joint.type in MOVING:
+            out.append(inner + _joint_statement(robot, joint, by_name))
+        out.append(f"{inner}point origin = (0, 0, 0)")
+        taken = {"origin", *(robot.links[j.child] for j in robot.children.get(name, []))}
+        for i, visual in enumerate(link_map[name].visuals):
+            out.append(inner + _visual(visual, i, robot, taken, base))
+        for child in robot.children.get(name, []):
+            frame(child.child, child, depth + 1)
+        out.append(pad + "}")
+
+    frame(robot.root, None, 0)
+    out.append("")
+    out.append(f"measure {MEASURES}")
+    return "\n".join(out) + "\n"
+
+
+def load_urdf(path: str | os.PathLike[str]) -> Model:
+    """A URDF file as a checked model; ``model.path`` is the URDF's path.
+
+    The generated text (:func:`urdf_to_mdl`) is checked as if it were a model file beside the
+    URDF, so mesh paths resolve.
+
+    Raises
+    ------
+    MdlError
+        :class:`UrdfError` for a malformed URDF (file and line where known).
+    """
+    from mbcal.language import load_model_text
+
+    path = Path(path)
+    text = urdf_to_mdl(path)
+    model = load_model_text(text, str(path.with_name(path.name + ".mdl")))
+    return dataclasses.replace(model, path=str(path), files=(str(path), *model.files[1:]))
+
+
+# ---- writing -----------------------------------------------------------------------------------------
+
+
+def _format(value: float) -> str:
+    value = float(value)
+    if abs(value) < 1e-15:
+        return "0"
+    return repr(value)
+
+
+def _relocated_mesh(name: str, source: Path, out: Path) -> str | None:
+    if "://" in name or Path(name).is_absolute():
+        return None
+    target = (source.parent / name).resolve()
+    try:
+        return Path(os.path.relpath(target, out.parent)).as_posix()
+    except ValueError:  # another drive
+        return target.as_posix()
+
+
+def write_urdf(
+    result_or_values: CalibrationResult | Mapping[str, float],
+    urdf_in: str | os.PathLike[str],
+    urdf_out: str | os.PathLike[str],
+    *,
+    overwrite: bool = True,
+) -> dict[str, dict[str, Any]]:
+    """Write ``urdf_in`` with calibrated joint origins to ``urdf_out`` (see the module doc).
+
+    Parameters
+    ----------
+    result_or_values : CalibrationResult or mapping
+        The estimates: a calibration result (its ``values``) or ``{name: SI value}`` with the
+        parameter names of the generated model (``J.x`` ... ``J.yaw``, ``J.offset``).  Readings
+        (``J.q``), per-configuration copies (``name@config``) and names that are not joint
+        parameters of this URDF are ignored.
+    urdf_in, urdf_out : path
+        The URDF the model was made from, and the file to write (never ``urdf_in``).
+    overwrite : bool
+        Replace ``urdf_out`` if it exists.
+
+    Returns
+    -------
+    dict
+        For every edited joint (URDF name): ``xyz``, ``rpy`` (the new origin) and ``offset``
+        (the folded offset, m or rad).
+    """
+    from lxml import etree
+
+    from mbcal.fileio import atomic_write, check_output
+
+    values = result_or_values if isinstance(result_or_values, Mapping) else result_or_values.values
+    source = Path(urdf_in)
+    out = check_output(urdf_out, [source], overwrite=overwrite)
+    robot = _read(source)
+    tree = robot.tree
+    root = tree.getroot()
+    mdl_to_joint = {mdl: name for name, mdl in robot.joints.items()}
+    wanted: dict[str, dict[str, float]] = {}
+    for key, value in values.items():
+        if "@" in key or "." not in key:
+            continue
+        prefix, _, name = key.rpartition(".")
+        if prefix in mdl_to_joint and name in (*ORIGIN_FIELDS, "offset"):
+            wanted.setdefault(mdl_to_joint[prefix], {})[name] = float(value)
+    joints = {j.name: j for j in robot.urdf.robot.joints}
+    elements = {e.get("name"): e for e in root.iterchildren("joint")}
+    changed: dict[str, dict[str, Any]] = {}
+    for name, estimates in wanted.items():
+        joint = joints[name]
+        offset = estimates.get("offset", 0.0) if joint.type in MOVING else 0.0
+        if offset == 0.0 and not any(f in estimates for f in ORIGIN_FIELDS):
+            continue
+        element = elements[name]
+        origin = element.find("origin")
+        xyz0, rpy0 = _xyz_rpy(joint.origin)
+        xyz = np.array([estimates.get(f, v) for f, v in zip(ORIGIN_FIELDS[:3], xyz0)])
+        rpy = np.array([estimates.get(f, v) for f, v in zip(ORIGIN_FIELDS[3:], rpy0)])
+        # Components that keep their value keep their text (when it is the value mbcal read).
+        written = {}
+        if offset == 0.0 and origin is not None:
+            for attribute, fields, nominal in (("xyz", ORIGIN_FIELDS[:3], xyz0), ("rpy", ORIGIN_FIELDS[3:], rpy0)):
+                tokens = (origin.get(attribute) or "").replace(",", " ").split()
+                if len(tokens) == 3:
+                    for f, token, value in zip(fields, tokens, nominal):
+                        if f not in estimates and _same(token, value):
+                            written[f] = token
+        if offset != 0.0:
+            import trimesh.transformations as tra
+
+            axis = np.asarray(joint.axis, dtype=float)
+            axis = axis / np.linalg.norm(axis)
+            matrix = _pose_matrix(xyz, rpy)
+            if joint.type == "prismatic":
+                matrix = matrix @ tra.translation_matrix(axis * offset)
+            else:
+                matrix = matrix @ tra.rotation_matrix(offset, axis)
+            xyz, rpy = _xyz_rpy(matrix)
+        before = "none" if origin is None else f'xyz="{origin.get("xyz", "0 0 0")}" rpy="{origin.get("rpy", "0 0 0")}"'
+        if origin is None:
+            origin = etree.Element("origin")
+            anchor = element.find("child")
+            if anchor is None:
+                element.insert(0, origin)
+            else:
+                anchor.addnext(origin)
+                origin.tail = anchor.tail
+        origin.set("xyz", " ".join(written.get(f, _format(v)) for f, v in zip(ORIGIN_FIELDS[:3], xyz)))
+        origin.set("rpy", " ".join(written.get(f, _format(v)) for f, v in zip(ORIGIN_FIELDS[3:], rpy)))
+        if joint.type == "prismatic":
+            folded = f"{offset * 1000:.9g} mm"
+        else:
+            folded = f"{math.degrees(offset):.9g} deg"
+        note = f" mbcal: calibrated origin; was {before}"
+        if "offset" in estimates and joint.type in MOVING:
+            note += f"; encoder offset {folded} folded in (readings unchanged)"
+        comment = etree.Comment(note.replace("--", "- -") + " ")
+        previous = origin.getprevious()
+        indent = previous.tail if previous is not None else element.text
+        origin.addprevious(comment)
+        comment.tail = indent if indent is not None and not indent.strip() else None
+        changed[name] = {"xyz": xyz.tolist(), "rpy": rpy.tolist(), "offset": offset}
+    if out.resolve().parent != source.resolve().parent:
+        for mesh in root.iter("mesh"):
+            name = mesh.get("filename")
+            new = _relocated_mesh(name, source, out) if name else None
+            if new is not None:
+                mesh.set("filename", new)
+    import datetime as _dt
+
+    stamp = _dt.datetime.now().strftime("%Y-%m-%d %H:%M")
+    header = f" Calibrated by mbcal on {stamp} from {source.name}: {len(changed)} joint origin(s) edited "
+    root.addprevious(etree.Comment(header.replace("--", "- -")))
+    atomic_write(out, _serialize(tree))
+    return changed
+
+
+def _serialize(tree) -> bytes:
+    """The document, with the nodes around the root element on lines of their own."""
+    from lxml import etree
+
+    encoding = tree.docinfo.encoding or "UTF-8"
+    version = tree.docinfo.xml_version or "1.0"
+    root = tree.getroot()
+    parts = [f'<?xml version="{version}" encoding="{encoding}"?>'.encode(encoding)]
+    if tree.docinfo.doctype:
+        parts.append(tree.docinfo.doctype.encode(encoding))
+    nodes = [*reversed(list(root.itersiblings(preceding=True))), root, *root.itersiblings()]
+    for node in nodes:
+        parts.append(etree.tostring(node, encoding=encoding, xml_declaration=False, with_tail=False))
+    return b"\n".join(parts) + b"\n"
+
+
+def _same(token: str, value: float) -> bool:
+    try:
+        return abs(float(token) - float(value)) <= 1e-12
+    except ValueError:
+        return False

@@ -1,0 +1,275 @@
+"""Camera calibration on real data (Zhang's) and on synthetic images with known truth."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import mbcal
+from mbcal.calibration import (
+    calibrate_cameras,
+    homography,
+    intrinsics_from_homographies,
+    plan_views,
+    pose_from_homography,
+    synthesize_images,
+)
+from mbcal.detect import detect_images
+
+from conftest import MODELS, shared_data
+
+# Z. Zhang's published result with distortion (calibration-result-zhang-withdistortion.txt).
+ZHANG = {"fx": 832.5, "skew": 0.204494, "fy": 832.53, "cx": 303.959, "cy": 206.585, "k1": -0.228601, "k2": 0.190353}
+
+
+def zhang_model(target: str, *, skew: bool) -> mbcal.Model:
+    folder = shared_data("zhang")
+    skew_param = "param cam.skew = 0 in [-5, 5]\n" if skew else ""
+    skew_arg = ", skew = cam.skew" if skew else ""
+    text = f"""
+    param cam.fx = 800 in [500, 1200]
+    param cam.fy = 800 in [500, 1200]
+    param cam.cx = 320 in [250, 390]
+    param cam.cy = 240 in [180, 300]
+    {skew_param}
+    param cam.k1 = 0 in [-1, 1]
+    param cam.k2 = 0 in [-1, 1]
+    param plane.x = 0 m per configuration
+    param plane.y = 0 m per configuration
+    param plane.z = 0.3 m per configuration
+    param plane.roll = 0 deg per configuration
+    param plane.pitch = 0 deg per configuration
+    param plane.yaw = 0 deg per configuration
+    camera cam(width = 640, height = 480, fx = cam.fx, fy = cam.fy, cx = cam.cx, cy = cam.cy{skew_arg},
+               k1 = cam.k1, k2 = cam.k2)
+    target plane = {target.format(folder=folder)} at pose(plane.x, plane.y, plane.z, plane.roll, plane.pitch, plane.yaw)
+    """
+    return mbcal.load_model_text(text)
+
+
+def zhang_corners(model) -> mbcal.MeasurementSet:
+    folder = shared_data("zhang")
+    records = []
+    for view in range(1, 6):
+        uv = np.loadtxt(folder / f"data{view}.txt").reshape(-1, 2)
+        for k, (u, v) in enumerate(uv):
+            records.append(
+                {
+                    "kind": "image_point",
+                    "config": f"view{view}",
+                    "camera": "cam",
+                    "point": f"plane.p{k}",
+                    "u": u,
+                    "v": v,
+                    "sigma": 0.5,
+                }
+            )
+    return mbcal.measurements_from_records(records, model)
+
+
+POINTS_FILE = 'points("{folder}/Model.txt", scale = 1 inch)'
+
+
+def test_zhangs_data_reproduces_his_published_calibration_with_skew():
+    model = zhang_model(POINTS_FILE, skew=True)
+    cc = calibrate_cameras(model, zhang_corners(model))
+    assert cc.ok
+    got = {k: v for k, (v, _) in cc.intrinsics["cam"].items()}
+    for key in ("fx", "fy", "cx", "cy"):
+        assert got[key] == pytest.approx(ZHANG[key], rel=1e-3), key
+    assert got["skew"] == pytest.approx(ZHANG["skew"], abs=0.01)
+    assert got["k1"] == pytest.approx(ZHANG["k1"], rel=1e-3)
+    assert got["k2"] == pytest.approx(ZHANG["k2"], rel=1e-2)
+    # His extrinsic translation of view 1, in inches.
+    t1 = [cc.result.values[f"plane.{a}@view1"] / 0.0254 for a in "xyz"]
+    np.testing.assert_allclose(t1, [-3.84019, 3.65164, 12.791], rtol=1e-3)
+
+
+def test_zhangs_data_matches_opencv_for_the_same_camera_model():
+    cv2 = pytest.importorskip("cv2")
+    folder = shared_data("zhang")
+    model = zhang_model(POINTS_FILE, skew=False)
+    cc = calibrate_cameras(model, zhang_corners(model))
+    plane = np.loadtxt(folder / "Model.txt").reshape(-1, 2)
+    obj = np.c_[plane, np.zeros(len(plane))].astype(np.float32)
+    images = [np.loadtxt(folder / f"data{v}.txt").reshape(-1, 2).astype(np.float32) for v in range(1, 6)]
+    flags = cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST
+    criteria = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 500, 1e-14)
+    rms, K, dist, _, _ = cv2.calibrateCamera([obj] * 5, images, (640, 480), None, None, flags=flags, criteria=criteria)
+    got = {k: v for k, (v, _) in cc.intrinsics["cam"].items()}
+    for key, theirs in (("fx", K[0, 0]), ("fy", K[1, 1]), ("cx", K[0, 2]), ("cy", K[1, 2])):
+        assert got[key] == pytest.approx(theirs, rel=1e-3), key
+    assert abs(cc.rms - rms) < 1e-3
+    assert got["k1"] == pytest.approx(dist.ravel()[0], rel=1e-3)
+
+
+def test_corners_detected_in_zhangs_images_calibrate_the_camera(tmp_path):
+    pytest.importorskip("cv2")
+    folder = shared_data("zhang")
+    model_path = tmp_path / "zhang.mdl"
+    text = (MODELS / "camera_calibration.mdl").read_text()  # the bundled example, with Zhang's target and size
+    text = text.replace(
+        "chessboard(rows = 6, cols = 9, square = 25 mm)",
+        "squares(rows = 8, cols = 8, size = 0.5 inch, pitch = 0.888889 inch)",
+    )
+    model_path.write_text(text)
+    images = sorted(str(p) for p in folder.glob("CalibIm*.png"))
+    corners = tmp_path / "corners.json"
+    run = [sys.executable, "-m", "mbcal"]
+    detected = subprocess.run(
+        [*run, "detect", *images, "--target", model_path, "-o", corners], capture_output=True, text=True, timeout=600
+    )
+    assert detected.returncode == 0, detected.stderr
+    assert "1280 corners in 5 of 5 images" in detected.stdout
+    # Every detected corner lies near one of Zhang's own measured corners.
+    data = mbcal.read_measurements(corners, mbcal.load_model(model_path))
+    for view in range(1, 6):
+        theirs = np.loadtxt(folder / f"data{view}.txt").reshape(-1, 2)
+        ours = np.array([m.value for m in data if m.config == f"CalibIm{view}"])
+        nearest = np.linalg.norm(ours[:, None] - theirs[None], axis=2).min(axis=1)
+        assert np.median(nearest) < 0.5 and nearest.max() < 1.5
+    report = tmp_path / "camera.json"
+    calibrated = subprocess.run(
+        [
+            *run,
+            "calibrate-camera",
+            model_path,
+            corners,
+            "--estimate",
+            "cam.fx",
+            "cam.fy",
+            "cam.cx",
+            "cam.cy",
+            "cam.k1",
+            "cam.k2",
+            "board.*",
+            "--json",
+            report,
+            "--overlay",
+            tmp_path / "reprojection",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    assert calibrated.returncode == 0, calibrated.stderr
+    assert "per view:" in calibrated.stdout and "RMS reprojection error" in calibrated.stdout
+    result = json.loads(report.read_text())
+    cam = result["cameras"]["cam"]
+    for key in ("fx", "fy", "cx", "cy"):
+        assert cam[key]["value"] == pytest.approx(ZHANG[key], rel=0.01), key
+        assert cam[key]["std"] is not None and cam[key]["std"] > 0
+    assert result["rms_reprojection"] < 0.5 and len(result["views"]) == 5
+    assert len(list((tmp_path / "reprojection").glob("*.png"))) == 5
+
+
+def test_closed_form_recovers_an_exact_camera():
+    K = np.array([[800.0, 0.7, 320.0], [0, 790.0, 240.0], [0, 0, 1]])
+    rng = np.random.default_rng(0)
+    plane = np.stack(np.meshgrid(np.arange(7) * 0.03, np.arange(5) * 0.03), -1).reshape(-1, 2)
+    Hs = []
+    for _ in range(4):
+        a, b, c = rng.uniform(-0.4, 0.4, 3)
+        from mbcal.geometry import rpy
+
+        R = rpy(np, a, b, c)[:3, :3]
+        t = np.array([rng.uniform(-0.1, 0.1), rng.uniform(-0.1, 0.1), rng.uniform(0.4, 0.7)])
+        cam = plane @ R[:, :2].T + t
+        uv = cam @ K.T
+        uv = uv[:, :2] / uv[:, 2:]
+        H = homography(plane, uv)
+        Hs.append(H)
+        R2, t2 = pose_from_homography(K, H)
+        np.testing.assert_allclose(R2, R, atol=1e-8)
+        np.testing.assert_allclose(t2, t, atol=1e-9)
+    np.testing.assert_allclose(intrinsics_from_homographies(Hs, skew=True), K, rtol=1e-7, atol=1e-6)
+
+
+def test_a_camera_with_full_distortion_is_recovered_from_synthetic_chessboard_images(tmp_path):
+    pytest.importorskip("cv2")
+    model = mbcal.load_model(MODELS / "camera_calibration.mdl")
+    truth = {
+        "cam.fx": 812.0,
+        "cam.fy": 806.5,
+        "cam.cx": 327.0,
+        "cam.cy": 236.0,
+        "cam.k1": -0.21,
+        "cam.k2": 0.08,
+        "cam.p1": 0.001,
+        "cam.p2": -0.0007,
+        "cam.k3": 0.0,
+    }
+    views = plan_views(model, 10, seed=3)
+    paths = synthesize_images(model, views, tmp_path, truth=truth)
+    data, detections = detect_images(model, list(paths.values()))
+    assert all(d.found for d in detections)
+    cc = calibrate_cameras(model, data)
+    assert cc.ok and cc.rms < 0.2
+    for name, value in truth.items():
+        est, std = cc.result.values[name], cc.result.std[name]
+        assert abs(est - value) <= 3 * std + 1e-12, (name, est, value, std)
+
+
+def test_a_stereo_rig_is_recovered_from_synthetic_images_of_both_cameras(tmp_path):
+    pytest.importorskip("cv2")
+    model = mbcal.load_model(MODELS / "stereo_calibration.mdl")
+    truth = {
+        "lens_left.fx": 790.0,
+        "lens_left.fy": 788.0,
+        "lens_left.cx": 322.0,
+        "lens_left.cy": 241.0,
+        "lens_left.k1": -0.12,
+        "lens_right.fx": 805.0,
+        "lens_right.fy": 803.0,
+        "lens_right.cx": 317.0,
+        "lens_right.cy": 236.0,
+        "lens_right.k1": -0.1,
+        "rig.x": 0.115,
+        "rig.y": 0.003,
+        "rig.z": -0.002,
+        "rig.roll": np.radians(0.5),
+        "rig.pitch": np.radians(-1.2),
+        "rig.yaw": np.radians(0.8),
+    }
+    views = plan_views(model, 8, seed=5, distance=(0.5, 0.7), tilt_deg=25)
+    left = synthesize_images(model, views, tmp_path / "left", truth=truth, camera="left")
+    right = synthesize_images(model, views, tmp_path / "right", truth=truth, camera="right", seed=1)
+    data_left, _ = detect_images(model, list(left.values()), camera="left")
+    data_right, _ = detect_images(model, list(right.values()), camera="right")
+    from mbcal.measurements.files import merge_measurements
+
+    data = merge_measurements([data_left, data_right])
+    cc = calibrate_cameras(model, data)
+    assert cc.ok and len(cc.cameras) == 2
+    for name, value in truth.items():
+        est, std = cc.result.values[name], cc.result.std[name]
+        assert abs(est - value) <= 3 * std + 1e-12, (name, est, value, std)
+
+
+def test_detect_without_opencv_says_how_to_install_it(tmp_path):
+    (tmp_path / "cv2.py").write_text("raise ImportError('no OpenCV here')\n")
+    env = {**os.environ, "PYTHONPATH": str(tmp_path)}
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "mbcal",
+            "detect",
+            "x.png",
+            "--target",
+            str(MODELS / "camera_calibration.mdl"),
+            "-o",
+            str(tmp_path / "c.json"),
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
+    assert result.returncode == 2
+    assert "needs OpenCV" in result.stderr and "pip install 'mbcal[vision]'" in result.stderr

@@ -1,0 +1,373 @@
+"""URDF in, URDF out: import as a model, forward kinematics against yourdfpy, export with offsets folded."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import trimesh
+import yourdfpy
+
+import mbcal
+from mbcal.errors import MdlError
+from mbcal.fileio import OutputError
+from mbcal.urdf import load_urdf, resolve_mesh, urdf_names, urdf_to_mdl, write_urdf
+
+from conftest import ROOT
+
+ARM = ROOT / "tests" / "data" / "arm7.urdf"
+JOINTS = [f"joint{i}" for i in range(1, 8)]
+LINKS = ["base_link", *(f"link{i}" for i in range(1, 8)), "tool-center"]
+
+
+@pytest.fixture(scope="module")
+def arm():
+    return mbcal.load_model(ARM)
+
+
+def urdf_fk(path, readings: dict[str, float], links) -> dict[str, np.ndarray]:
+    """yourdfpy's own forward kinematics: T_root_link for every link."""
+    robot = yourdfpy.URDF.load(str(path), load_meshes=False)
+    robot.update_cfg(readings)
+    return {link: robot.get_transform(link, robot.base_link) for link in links}
+
+
+def mbcal_fk(model, values: dict[str, float], links, names=None) -> dict[str, np.ndarray]:
+    """mbcal's forward kinematics: the world pose of every link frame."""
+    names = names or {}
+    scene = mbcal.modeler(model, mbcal.parameter_vector(model, values))
+    return {link: np.asarray(scene.frame(names.get(link, link))) for link in links}
+
+
+def readings(rng, joints=JOINTS) -> dict[str, float]:
+    return {j: float(rng.uniform(-2.5, 2.5)) for j in joints}
+
+
+def assert_same_poses(a: dict[str, np.ndarray], b: dict[str, np.ndarray], atol=1e-9):
+    assert a.keys() == b.keys()
+    for link in a:
+        np.testing.assert_allclose(a[link], b[link], rtol=0, atol=atol, err_msg=link)
+
+
+# ---- import ---------------------------------------------------------------------------------------
+
+
+def test_the_urdf_loads_as_a_model(arm):
+    assert arm.path == str(ARM)
+    names = set(arm.names("param"))
+    for j in [*JOINTS, "tool_mount"]:
+        assert {f"{j}.{f}" for f in ("x", "y", "z", "roll", "pitch", "yaw")} <= names
+    for j in JOINTS:
+        assert arm.param(f"{j}.q").per_configuration
+        assert arm.param(f"{j}.q").unit == "deg"
+        offset = arm.param(f"{j}.offset")
+        assert not offset.per_configuration and offset.nominal == 0.0
+        assert offset.lower == pytest.approx(-math.radians(5)) and offset.upper == pytest.approx(math.radians(5))
+    assert "tool_mount.q" not in names and "tool_mount.offset" not in names  # a fixed joint
+    z = arm.param("joint1.z")
+    assert z.nominal == pytest.approx(0.12) and z.lower == pytest.approx(0.10) and z.upper == pytest.approx(0.14)
+    assert arm.param("joint2.roll").nominal == pytest.approx(math.pi / 2, abs=1e-15)
+    assert arm.param("joint2.roll").upper == pytest.approx(math.pi / 2 + math.radians(2))
+    assert len(arm.frames) == 9 and arm.frames[0].name == "base_link"
+    for link in LINKS:
+        mdl = link.replace("-", "_")
+        assert arm.resolve("frame", mdl).endswith(mdl)
+        assert arm.resolve("point", f"{mdl}.origin").endswith(f"{mdl}.origin")
+    joints = [f.joint for f in arm.frames if f.joint is not None]
+    assert len(joints) == 7 and {j.kind for j in joints} == {"revolute"}
+    assert joints[0].lower == pytest.approx(-2.9) and joints[0].upper == pytest.approx(2.9)
+    kinds = sorted(s.kind for s in arm.shapes)
+    assert kinds == ["box", "box", "box", "cylinder", "cylinder", "cylinder", "cylinder", "sphere", "sphere", "sphere"]
+    assert set(arm.measures) == {"image_point", "point3d", "distance", "angle"}
+    assert urdf_names(ARM) == {
+        "link": {link: link.replace("-", "_") for link in LINKS},
+        "joint": {**{j: j for j in JOINTS}, "tool-mount": "tool_mount"},
+    }
+
+
+def test_the_generated_text_names_the_urdf_originals():
+    text = urdf_to_mdl(ARM)
+    assert "link 'tool-center' -> tool_center" in text and "joint 'tool-mount' -> tool_mount" in text
+    assert "link link1 at pose(joint1.x, joint1.y, joint1.z, joint1.roll, joint1.pitch, joint1.yaw)" in text
+    assert "joint revolute((0, 0.6, 0.8), joint7.q, offset = joint7.offset" in text
+    assert "param joint1.q = 0 deg per configuration" in text
+    assert "param joint1.offset = 0 deg in [-5 deg, 5 deg]" in text
+    # The text is a model of its own, beside the URDF.
+    model = mbcal.load_model_text(text, str(ARM.with_suffix(".mdl")))
+    assert len(model.params) == 62
+
+
+def test_forward_kinematics_equals_yourdfpys(arm):
+    rng = np.random.default_rng(11)
+    names = {link: link.replace("-", "_") for link in LINKS}
+    for _ in range(5):
+        q = readings(rng)
+        ours = mbcal_fk(arm, {f"{j}.q": v for j, v in q.items()}, LINKS, names)
+        assert_same_poses(ours, urdf_fk(ARM, q, LINKS))
+
+
+def test_a_joint_offset_adds_to_the_reading(arm):
+    rng = np.random.default_rng(12)
+    names = {link: link.replace("-", "_") for link in LINKS}
+    offsets = {j: float(rng.uniform(-0.08, 0.08)) for j in JOINTS}
+    for _ in range(3):
+        q = readings(rng)
+        values = {**{f"{j}.q": v for j, v in q.items()}, **{f"{j}.offset": d for j, d in offsets.items()}}
+        shifted = {j: q[j] + offsets[j] for j in JOINTS}
+        assert_same_poses(mbcal_fk(arm, values, LINKS, names), urdf_fk(ARM, shifted, LINKS))
+
+
+# ---- export -----------------------------------------------------------------------------------------
+
+CALIBRATED = {
+    "joint2.x": 0.023,
+    "joint3.y": -0.296,
+    "joint4.pitch": -0.3 + 0.012,
+    "joint5.yaw": -0.15 - 0.01,
+    "tool_mount.z": 0.125,
+    "joint1.offset": 0.031,
+    "joint3.offset": -0.052,
+    "joint6.offset": 0.044,
+    "joint7.offset": -0.02,
+}
+
+
+def test_export_folds_offsets_so_readings_give_the_calibrated_kinematics(arm, tmp_path):
+    before = ARM.read_bytes()
+    out = tmp_path / "arm7_calibrated.urdf"
+    changed = write_urdf(CALIBRATED, ARM, out)
+    assert ARM.read_bytes() == before
+    assert set(changed) == {"joint1", "joint2", "joint3", "joint4", "joint5", "joint6", "joint7", "tool-mount"}
+    assert changed["joint3"]["offset"] == pytest.approx(-0.052)
+    text = out.read_text(encoding="utf-8")
+    assert "encoder offset -2.97938" in text and "folded in" in text and "Calibrated by mbcal" in text
+    assert '<inertia ixx="0.02"' in text and '<dynamics damping="0.1"/>' in text  # the rest is kept
+    rng = np.random.default_rng(13)
+    names = {link: link.replace("-", "_") for link in LINKS}
+    for _ in range(4):
+        q = readings(rng)
+        ours = mbcal_fk(arm, {**CALIBRATED, **{f"{j}.q": v for j, v in q.items()}}, LINKS, names)
+        assert_same_poses(urdf_fk(out, q, LINKS), ours)
+    # The written URDF loads as a model whose nominal kinematics are the calibrated ones.
+    again = load_urdf(out)
+    assert again.param("joint2.x").nominal == pytest.approx(0.023, abs=1e-15)
+    q = readings(rng)
+    assert_same_poses(
+        mbcal_fk(again, {f"{j}.q": v for j, v in q.items()}, LINKS, names),
+        mbcal_fk(arm, {**CALIBRATED, **{f"{j}.q": v for j, v in q.items()}}, LINKS, names),
+    )
+
+
+def test_export_leaves_joints_without_estimates_untouched_and_never_overwrites_its_input(tmp_path):
+    out = tmp_path / "only_one.urdf"
+    write_urdf({"joint4.offset": 0.01, "joint4.q": 3.0, "joint4.q@c1": 1.0, "camera.f": 600.0}, ARM, out)
+    text = out.read_text(encoding="utf-8")
+    assert text.count("mbcal: calibrated origin") == 1
+    assert '<origin xyz="0 0 0.12" rpy="0 0 0"/>' in text  # joint1, as written
+    with pytest.raises(OutputError, match="refusing to overwrite"):
+        write_urdf({"joint1.offset": 0.01}, ARM, ARM)
+
+
+# ---- a calibration through the library ------------------------------------------------------------
+
+
+def test_offsets_and_origin_errors_are_recovered_from_3d_points(arm, tmp_path):
+    rng = np.random.default_rng(21)
+    configurations = {f"c{k}": {f"{j}.q": float(rng.uniform(-1.5, 1.5)) for j in JOINTS} for k in range(6)}
+    records = [
+        {"kind": "point3d", "config": c, "point": f"{link.replace('-', '_')}.origin", "sigma": 0.5e-3}
+        for c in configurations
+        for link in LINKS[1:]
+    ]
+    plan = mbcal.measurements_from_records(records, arm, configurations=configurations)
+    truth = {f"{j}.offset": math.radians(float(rng.uniform(-4, 4))) for j in JOINTS}
+    truth["joint3.y"] = -0.3 + 0.006
+    truth["joint5.z"] = 0.06 - 0.004
+    data = mbcal.simulate(arm, plan, truth, noise=1.0, seed=4)
+    result = mbcal.calibrate(arm, data, ["joint*.offset", "joint3.y", "joint5.z"], restarts=4, seed=0, points=[])
+    assert result.ok
+    for name, value in truth.items():
+        assert abs(result.values[name] - value) < 3 * result.std[name], name
+    assert max(result.std[f"{j}.offset"] for j in JOINTS) < math.radians(0.5)
+    # The result exports: the calibrated URDF reproduces the calibrated model at the readings.
+    out = tmp_path / "calibrated.urdf"
+    write_urdf(result, ARM, out)
+    names = {link: link.replace("-", "_") for link in LINKS}
+    q = configurations["c3"]
+    ours = mbcal_fk(arm, {**result.values, **q}, LINKS, names)
+    assert_same_poses(urdf_fk(out, {k.split(".")[0]: v for k, v in q.items()}, LINKS), ours)
+    # Through the result (what 'mbcal solve --write-model' does): a URDF, or .mdl text with overrides.
+    via_result = tmp_path / "via_result.urdf"
+    result.write_model(via_result)
+    assert_same_poses(urdf_fk(via_result, {k.split(".")[0]: v for k, v in q.items()}, LINKS), ours)
+    as_mdl = tmp_path / "calibrated.mdl"
+    result.write_model(as_mdl)
+    again = mbcal.load_model(as_mdl)
+    for name, value in result.values.items():
+        assert again.param(name).nominal == pytest.approx(value, rel=1e-9, abs=1e-12), name
+
+
+# ---- other joint kinds, names, meshes -------------------------------------------------------------
+
+SMALL = """<?xml version="1.0"?>
+<robot name="small">
+  <link name="base">
+    <visual name="dot"><geometry><sphere radius="0"/></geometry></visual>
+  </link>
+  <link name="slide">
+    <visual><geometry><mesh filename="package://small_pkg/meshes/part.stl" scale="0.5 0.5 2"/></geometry></visual>
+    <visual><geometry><mesh filename="meshes/missing.stl"/></geometry></visual>
+  </link>
+  <link name="wheel"/>
+  <link name="2nd link"/>
+  <link name="finger"/>
+  <joint name="joint" type="prismatic">
+    <parent link="base"/><child link="slide"/>
+    <origin xyz="0.1 0 0.2" rpy="0 0.3 0"/>
+    <axis xyz="1 0 0"/>
+    <limit lower="-0.1" upper="0.3" effort="10" velocity="1"/>
+  </joint>
+  <joint name="spin" type="continuous">
+    <parent link="slide"/><child link="wheel"/>
+    <origin xyz="0 0.05 0"/>
+  </joint>
+  <joint name="link" type="revolute">
+    <parent link="wheel"/><child link="2nd link"/>
+    <origin xyz="0.1 0 0" rpy="0 0 0.7"/>
+    <axis xyz="0 1 0"/>
+    <limit lower="-1" upper="1" effort="10" velocity="1"/>
+  </joint>
+  <joint name="follow" type="prismatic">
+    <parent link="slide"/><child link="finger"/>
+    <origin xyz="0 -0.02 0.03" rpy="0.2 0 0"/>
+    <axis xyz="0 0 1"/>
+    <limit lower="0" upper="0.04" effort="10" velocity="1"/>
+    <mimic joint="link" multiplier="0.02" offset="0.01"/>
+  </joint>
+</robot>
+"""
+SMALL_LINKS = ["base", "slide", "wheel", "2nd link", "finger"]
+SMALL_NAMES = {"2nd link": "_2nd_link"}
+
+
+@pytest.fixture
+def small(tmp_path):
+    folder = tmp_path / "small_pkg"
+    (folder / "urdf").mkdir(parents=True)
+    (folder / "meshes").mkdir()
+    trimesh.creation.box(extents=(0.1, 0.2, 0.05)).export(folder / "meshes" / "part.stl")
+    path = folder / "urdf" / "small.urdf"
+    path.write_text(SMALL, encoding="utf-8")
+    return path
+
+
+def test_prismatic_continuous_and_mimic_joints_and_renamed_names(small):
+    model = load_urdf(small)
+    assert urdf_names(small)["joint"] == {"joint": "joint_", "spin": "spin", "link": "link_", "follow": "follow"}
+    assert model.param("joint_.q").unit == "m" and model.param("joint_.offset").upper == pytest.approx(0.005)
+    assert model.param("spin.q").unit == "deg"
+    assert not model.has("param", "follow.q") and model.has("param", "follow.offset")  # mimic: no reading
+    rng = np.random.default_rng(5)
+    for _ in range(3):
+        q = {
+            "joint": float(rng.uniform(-0.1, 0.3)),
+            "spin": float(rng.uniform(-4, 4)),
+            "link": float(rng.uniform(-1, 1)),
+        }
+        values = {f"{urdf_names(small)['joint'][j]}.q": v for j, v in q.items()}
+        assert_same_poses(mbcal_fk(model, values, SMALL_LINKS, SMALL_NAMES), urdf_fk(small, q, SMALL_LINKS))
+    # Offsets of every kind fold into the exported origins.
+    calibrated = {"joint_.offset": 0.004, "spin.offset": 0.2, "link_.offset": -0.05, "follow.offset": 0.003}
+    out = small.parent / "small_calibrated.urdf"
+    write_urdf(calibrated, small, out)
+    q = {"joint": 0.12, "spin": 1.0, "link": 0.4}
+    values = {**calibrated, **{f"{urdf_names(small)['joint'][j]}.q": v for j, v in q.items()}}
+    assert_same_poses(urdf_fk(out, q, SMALL_LINKS), mbcal_fk(model, values, SMALL_LINKS, SMALL_NAMES))
+
+
+def test_meshes_resolve_through_package_names_and_missing_ones_become_comments(small, tmp_path):
+    part = (tmp_path / "small_pkg" / "meshes" / "part.stl").resolve()
+    assert resolve_mesh("package://small_pkg/meshes/part.stl", small) == part
+    assert resolve_mesh("../meshes/part.stl", small) == part
+    assert resolve_mesh(f"file://{part}", small) == part
+    assert resolve_mesh("package://other_pkg/meshes/part.stl", small) is None
+    text = urdf_to_mdl(small)
+    assert 'mesh("../meshes/part.stl", scale = (0.5, 0.5, 2))' in text
+    assert "mesh file not found, left out: meshes/missing.stl" in text
+    assert "visual 0 'dot': a sphere with an invalid size (not positive), left out" in text
+    model = load_urdf(small)
+    (mesh,) = [s for s in model.shapes if s.kind == "mesh"]
+    assert mesh.mesh.vertices.shape[1] == 3
+    scene = mbcal.modeler(model, model.nominal)
+    assert np.asarray(scene.shape_dims)[model.shapes.index(mesh)] == pytest.approx([0.5, 0.5, 2])
+    # A relative mesh name is rewritten when the calibrated URDF goes to another folder.
+    small.write_text(SMALL.replace("package://small_pkg/meshes/part.stl", "../meshes/part.stl"), encoding="utf-8")
+    out = tmp_path / "elsewhere.urdf"
+    write_urdf({}, small, out)
+    assert 'filename="small_pkg/meshes/part.stl"' in out.read_text(encoding="utf-8")
+
+
+# ---- errors ------------------------------------------------------------------------------------------
+
+
+def write(tmp_path, text: str, name: str = "bad.urdf"):
+    path = tmp_path / name
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def test_malformed_xml_names_the_file_and_line(tmp_path):
+    path = write(tmp_path, '<?xml version="1.0"?>\n<robot name="r">\n  <link name="a">\n</robot>\n')
+    with pytest.raises(MdlError, match=r"bad\.urdf:4:\d+: malformed XML"):
+        mbcal.load_model(path)
+
+
+def test_a_joint_with_a_missing_link_is_an_error_at_its_line(tmp_path):
+    path = write(
+        tmp_path,
+        '<robot name="r">\n  <link name="a"/>\n'
+        '  <joint name="j" type="fixed">\n    <parent link="a"/>\n    <child link="b"/>\n  </joint>\n</robot>\n',
+    )
+    with pytest.raises(MdlError, match=r"bad\.urdf:3:1: joint 'j' refers to a missing child link 'b'"):
+        mbcal.load_model(path)
+
+
+@pytest.mark.parametrize(
+    "body, message",
+    [
+        ('<joint name="free" type="floating"><parent link="a"/><child link="b"/></joint>', "joint 'free' is floating"),
+        ('<joint name="j" type="fixed"><child link="b"/></joint>', "not a valid URDF"),
+        ('<link name="c"/><joint name="j" type="fixed"><parent link="a"/><child link="b"/></joint>', "a, c"),
+        (
+            '<joint name="j" type="fixed"><parent link="a"/><child link="b"/></joint>'
+            '<joint name="k" type="fixed"><parent link="b"/><child link="a"/></joint>',
+            "cycle",
+        ),
+        ('<joint name="j" type="ball"><parent link="a"/><child link="b"/></joint>', "unknown type 'ball'"),
+    ],
+)
+def test_urdfs_mbcal_cannot_model_are_refused_with_the_file_name(tmp_path, body, message):
+    path = write(tmp_path, f'<robot name="r"><link name="a"/><link name="b"/>{body}</robot>')
+    with pytest.raises(MdlError, match="bad.urdf") as err:
+        urdf_to_mdl(path)
+    assert message in str(err.value)
+
+
+def test_mbcal_check_reads_a_urdf():
+    done = subprocess.run(
+        [sys.executable, "-m", "mbcal", "check", str(ARM)], capture_output=True, text=True, timeout=300
+    )
+    assert done.returncode == 0, done.stderr
+    assert "joint7.offset" in done.stdout and "ok: 1 model checked" in done.stdout
+
+
+def test_mbcal_check_reports_a_bad_urdf_without_a_traceback(tmp_path):
+    path = write(tmp_path, '<robot name="r"><link name="a"/>')
+    done = subprocess.run(
+        [sys.executable, "-m", "mbcal", "check", str(path)], capture_output=True, text=True, timeout=300
+    )
+    assert done.returncode == 2
+    assert "bad.urdf:1:" in done.stderr and "Traceback" not in done.stderr
