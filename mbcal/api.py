@@ -366,7 +366,14 @@ def calibrate(
     starts = random_starts(x_init, params.lower, params.upper, restarts, seed)
     config = config or SolverConfig()
     say(f"solving: {params.size} unknowns, {problem.size} residuals, {len(starts)} restarts")
-    solved = least_squares(problem.residual_function, starts, args=(problem.y, params.known), config=config)
+    solved = least_squares(
+        problem.residual_function,
+        starts,
+        args=(problem.y, params.known),
+        config=config,
+        size=problem.n_residuals,
+        cache_key=problem.fingerprint(),
+    )
     if solved.best < 0:
         raise SolverError(
             "every restart failed: the residuals are not finite at any starting point "
@@ -387,6 +394,8 @@ def calibrate(
         candidates = _candidate_rows(problem, x, _measured_keys(measurements))
         obs.suggestions = rank_candidates(obs, Jm, Jp, candidates)
     pts = _point_uncertainties(problem, x, obs.covariance, points, camera)
+    visible = problem.visible(x)
+    not_visible = [m.id for m, v in zip(measurements.measurements, visible) if not v]
     return CalibrationResult(
         problem=problem,
         solver=solved,
@@ -399,7 +408,13 @@ def calibrate(
         rms=_rms(problem, rows),
         elapsed=time.perf_counter() - t0,
         outlier_threshold=outlier_threshold,
-        info={"restarts": restarts, "seed": seed, "config": config, "scale_covariance": scale_covariance},
+        info={
+            "restarts": restarts,
+            "seed": seed,
+            "config": config,
+            "scale_covariance": scale_covariance,
+            "not_visible": not_visible,
+        },
     )
 
 

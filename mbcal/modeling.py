@@ -7,6 +7,7 @@ differentiated (``jax.jacfwd``) and batched over configurations (``jax.vmap``).
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -14,13 +15,13 @@ import numpy as np
 from mbcal import geometry as geo
 from mbcal._jax import jnp
 from mbcal.errors import ParameterError
-from mbcal.language import ir
+from mbcal.language import ir, soa
 from mbcal.language.model import JointInfo, Model
 from mbcal.scene import Scene
 
 Array = Any
 
-__all__ = ["modeler", "parameter_vector"]
+__all__ = ["modeler", "parameter_vector", "Needs"]
 
 
 def parameter_vector(model: Model, values: Mapping[str, float] | None = None) -> np.ndarray:
@@ -31,18 +32,66 @@ def parameter_vector(model: Model, values: Mapping[str, float] | None = None) ->
     return X
 
 
-def _joint_motion(joint: JointInfo, ev) -> Array:
+def _joint_motion(joint: JointInfo, ev) -> soa.Transform:
     q = ev(joint.q)
-    if joint.offset is not None:
-        q = q + ev(joint.offset)
     axis = ev(joint.axis)
-    xp = np if geo.is_constant(q, axis) else jnp
     if joint.kind == "prismatic":
-        return geo.translation(xp, axis * q)
-    return geo.from_rt(xp, geo.rodrigues(xp, axis, q), xp.zeros(3))
+        if joint.offset is not None:
+            q = soa.add(q, ev(joint.offset))
+        return soa.I3, tuple(soa.mul(a, q) for a in axis)
+    if joint.offset is not None:
+        q = soa.add(q, ev(joint.offset))
+    return soa.rodrigues(axis, q), soa.ZERO3
 
 
-def modeler(model: Model, X: Array | Mapping[str, float]) -> Scene:
+@dataclass(frozen=True)
+class Needs:
+    """What a computation reads from a scene; everything else the modeler may skip.
+
+    Skipped entries of the scene's arrays hold constants (identity poses, zero points), so a
+    consumer must read only what it declared.  ``None`` in a field means all of that kind.
+    """
+
+    frames: frozenset[int] | None = frozenset()
+    points: frozenset[int] | None = frozenset()
+    cameras: frozenset[int] | None = frozenset()
+    shapes: frozenset[int] | None = frozenset()
+
+    @staticmethod
+    def everything() -> Needs:
+        return Needs(None, None, None, None)
+
+    def union(self, other: Needs) -> Needs:
+        def join(a, b):
+            return None if a is None or b is None else a | b
+
+        return Needs(
+            join(self.frames, other.frames),
+            join(self.points, other.points),
+            join(self.cameras, other.cameras),
+            join(self.shapes, other.shapes),
+        )
+
+
+def _selected(wanted: frozenset[int] | None, n: int) -> list[int]:
+    return list(range(n)) if wanted is None else sorted(i for i in wanted if 0 <= i < n)
+
+
+def _frames_needed(model: Model, needs: Needs) -> set[int]:
+    """The needed frames and all their ancestors."""
+    direct: set[int] = set(_selected(needs.frames, len(model.frames)))
+    direct.update(model.points[i].frame for i in _selected(needs.points, len(model.points)))
+    direct.update(model.cameras[i].frame for i in _selected(needs.cameras, len(model.cameras)))
+    direct.update(model.shapes[i].frame for i in _selected(needs.shapes, len(model.shapes)))
+    out: set[int] = set()
+    for f in direct:
+        while f >= 0 and f not in out:
+            out.add(f)
+            f = model.frames[f].parent
+    return out
+
+
+def modeler(model: Model, X: Array | Mapping[str, float], needs: Needs | None = None) -> Scene:
     """Build the scene for parameter values ``X``.
 
     Parameters
@@ -52,6 +101,9 @@ def modeler(model: Model, X: Array | Mapping[str, float]) -> Scene:
     X : (n_params,) array or mapping
         All parameter values in SI units, in ``model.params`` order; or a mapping from name
         to value, the rest taken at their nominal values.
+    needs : Needs, optional
+        Compute only these frames, points, cameras and shapes (and the frames they hang from);
+        the rest of the scene holds constants.  Default: everything.
 
     Returns
     -------
@@ -59,62 +111,136 @@ def modeler(model: Model, X: Array | Mapping[str, float]) -> Scene:
         World poses of frames and shapes, world positions of points, camera intrinsics.
         Differentiable with respect to ``X``.
     """
+    from mbcal.params import ParamView
+
     if isinstance(X, Mapping):
         X = parameter_vector(model, X)
-    if jnp.ndim(X) != 1 or jnp.shape(X)[0] != len(model.params):
+    if not isinstance(X, ParamView) and (jnp.ndim(X) != 1 or jnp.shape(X)[0] != len(model.params)):
         raise ParameterError(
             f"modeler: X must have one value per parameter ({len(model.params)}), got shape {jnp.shape(X)}"
         )
+    needs = needs or Needs.everything()
     memo: dict[int, Any] = {}
 
-    def ev(node: ir.Node) -> Array:
-        return ir.evaluate(node, X, memo)
+    def ev(node: ir.Node):
+        return soa.evaluate(node, X, memo)
 
-    poses: list[Array | None] = []
-    for frame in model.frames:
-        T = poses[frame.parent] if frame.parent >= 0 else None
-        if frame.pose is not None:
-            T = geo.compose(T, ev(frame.pose))
-        if frame.joint is not None:
-            T = geo.compose(T, _joint_motion(frame.joint, ev))
-        poses.append(T)
+    # Frame poses as (R, t) of scalars: constants fold away while tracing (see language/soa.py).
+    # Each pose is kept as (variable part, constant offset): constant offsets are combined with
+    # numpy, and a traced product is made only where a parameter enters the chain, so a rigid
+    # object under a moving frame costs no operations at all.
+    wanted_frames = _frames_needed(model, needs)
+    lazy: list[tuple[soa.Transform, np.ndarray] | None] = []
+    for index, frame in enumerate(model.frames):
+        if index not in wanted_frames:
+            lazy.append(None)
+            continue
+        var, const = lazy[frame.parent] if frame.parent >= 0 else (soa.IDENTITY, np.eye(4))
+        for local in (frame.pose, frame.joint):
+            if local is None:
+                continue
+            if isinstance(local, JointInfo):
+                value = _joint_motion(local, ev)
+            elif isinstance(local, ir.Const):
+                const = const @ np.asarray(local.value, dtype=float)
+                continue
+            else:
+                value = ev(local)
+            var = soa.compose(var, soa.compose(soa.from_constant(const, ir.TRANSFORM), value))
+            const = np.eye(4)
+        lazy.append((var, const))
 
     eye = np.eye(4)
 
-    def pose(i: int) -> Array:
-        T = poses[i] if i >= 0 else None
-        return eye if T is None else T
+    def world(frame: int) -> soa.Transform:
+        if frame < 0 or lazy[frame] is None:
+            return soa.IDENTITY
+        var, const = lazy[frame]
+        return soa.compose(var, soa.from_constant(const, ir.TRANSFORM))
 
-    frame_poses = _stack([pose(i) for i in range(len(model.frames))], (0, 4, 4))
+    def place(frame: int, position: ir.Node) -> tuple:
+        """A point's world position: a constant point goes through the constant offset in numpy."""
+        if frame < 0 or lazy[frame] is None:
+            return ev(position)
+        var, const = lazy[frame]
+        if isinstance(position, ir.Const):
+            local = const[:3, :3] @ np.asarray(position.value, dtype=float) + const[:3, 3]
+            return soa.apply_point(var, tuple(float(v) for v in local))
+        return soa.apply_point(var, soa.apply_point(soa.from_constant(const, ir.TRANSFORM), ev(position)))
 
-    # Points: one matrix product per frame rather than one per point.
-    groups: dict[int, list[int]] = {}
-    for i, p in enumerate(model.points):
-        groups.setdefault(p.frame, []).append(i)
-    chunks, order = [], []
-    for frame_index, members in groups.items():
-        local = _stack([ev(model.points[i].position) for i in members], (0, 3))
-        T = poses[frame_index] if frame_index >= 0 else None
-        chunks.append(geo.apply(T, local))
+    # Only frames that are read go into the scene's array; ancestors needed to place points and
+    # sensors stay out of it (stacking them would materialise their derivatives for nothing).
+    read_frames = set(_selected(needs.frames, len(model.frames)))
+    read_frames.update(model.cameras[i].frame for i in _selected(needs.cameras, len(model.cameras)))
+    if needs.frames is None:
+        read_frames.update(r.frame for r in model.ranges)
+    frame_poses = _stack(
+        [soa.transform_to_matrix(world(i)) if i in read_frames else eye for i in range(len(model.frames))],
+        (0, 4, 4),
+    )
+
+    # Points: the constant points of one frame go through its pose as one array operation (the
+    # cost does not grow with their number); points given by expressions are placed one by one.
+    point_list = _selected(needs.points, len(model.points))
+    blocks: list[Any] = []
+    order: list[int] = []
+    by_frame: dict[int, list[int]] = {}
+    for i in point_list:
+        p = model.points[i]
+        if isinstance(p.position, ir.Const):
+            by_frame.setdefault(p.frame, []).append(i)
+        else:
+            blocks.append(soa.stack_scalars(place(p.frame, p.position))[None, :])
+            order.append(i)
+    for frame, members in by_frame.items():
+        local = np.stack([np.asarray(model.points[i].position.value, dtype=float) for i in members])
+        if frame >= 0 and lazy[frame] is not None:
+            var, const = lazy[frame]
+            local = local @ const[:3, :3].T + const[:3, 3]
+        else:
+            var = soa.IDENTITY
+        blocks.append(soa.stack_scalars(soa.apply_point(var, tuple(local[:, k] for k in range(3)))))
         order.extend(members)
-    if chunks:
-        stacked = chunks[0] if len(chunks) == 1 else jnp.concatenate([jnp.asarray(c) for c in chunks])
-        if order != sorted(order):
-            stacked = jnp.asarray(stacked)[np.argsort(order)]
-        points = jnp.asarray(stacked, dtype=float)
+    if not blocks:
+        points = jnp.zeros((len(model.points), 3))
     else:
-        points = jnp.zeros((0, 3))
+        stacked = blocks[0] if len(blocks) == 1 else jnp.concatenate([jnp.asarray(b, dtype=float) for b in blocks])
+        if len(order) == len(model.points):
+            points = stacked if order == sorted(order) else jnp.asarray(stacked)[np.argsort(order)]
+        else:
+            points = jnp.zeros((len(model.points), 3)).at[np.asarray(order)].set(stacked)
+        points = jnp.asarray(points, dtype=float)
 
-    intrinsics = _stack([_stack([ev(n) for n in c.intrinsics], (5,)) for c in model.cameras], (0, 5))
-    distortion = _stack([_stack([ev(n) for n in c.distortion], (5,)) for c in model.cameras], (0, 5))
+    camera_list = set(_selected(needs.cameras, len(model.cameras)))
+    zeros5 = np.zeros(5)
+    intrinsics = _stack(
+        [
+            soa.stack_scalars([ev(n) for n in c.intrinsics]) if k in camera_list else zeros5
+            for k, c in enumerate(model.cameras)
+        ],
+        (0, 5),
+    )
+    distortion = _stack(
+        [
+            soa.stack_scalars([ev(n) for n in c.distortion]) if k in camera_list else zeros5
+            for k, c in enumerate(model.cameras)
+        ],
+        (0, 5),
+    )
 
+    shape_list = set(_selected(needs.shapes, len(model.shapes)))
     shape_poses = []
     shape_dims = []
-    for s in model.shapes:
-        T = geo.compose(poses[s.frame] if s.frame >= 0 else None, ev(s.pose) if s.pose is not None else None)
-        shape_poses.append(eye if T is None else T)
-        dims = [ev(n) for n in s.dims] + [0.0] * (3 - len(s.dims))
-        shape_dims.append(_stack(dims, (3,)))
+    for k, s in enumerate(model.shapes):
+        if k not in shape_list:
+            shape_poses.append(eye)
+            shape_dims.append(np.zeros(3))
+            continue
+        T = world(s.frame)
+        if s.pose is not None:
+            T = soa.compose(T, ev(s.pose))
+        shape_poses.append(soa.transform_to_matrix(T))
+        shape_dims.append(soa.stack_scalars([ev(n) for n in s.dims] + [0.0] * (3 - len(s.dims))))
     return Scene(
         model=model,
         frame_poses=frame_poses,

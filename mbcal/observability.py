@@ -133,6 +133,7 @@ class Observability:
     chi2_scale: float = 1.0
     suggestions: list[Suggestion] = field(default_factory=list)
     null_space: np.ndarray | None = None  # (n, k) scaled
+    n_values: int | None = None  # measured values (rows of the measurement Jacobian)
 
     @property
     def n(self) -> int:
@@ -154,6 +155,8 @@ class Observability:
                 text += f"; {len(self.weak)} weakly observable direction(s)"
             return text
         text = f"NOT observable: rank {self.rank} of {self.n} ({self.n - self.rank} unobservable direction(s))"
+        if self.n_values is not None and self.n_values < self.n:
+            text += f"; underdetermined: {self.n_values} measured values for {self.n} unknowns"
         if self.observable_with_priors:
             text += "; the priors (sigma) make the estimate determined"
         return text
@@ -288,6 +291,7 @@ def analyze(
         correlation=corr,
         chi2_scale=chi2_scale,
         null_space=null,
+        n_values=int(np.asarray(J_measurements).shape[0]),
     )
 
 

@@ -23,7 +23,9 @@ RESIDUAL = (230, 130, 0)
 
 
 def _config_scene(problem, x, config: int):
-    scenes = problem.scenes(jnp.asarray(x, dtype=float))
+    from mbcal.modeling import Needs
+
+    scenes = problem.scenes(jnp.asarray(x, dtype=float), needs=Needs.everything())
     return jax.tree_util.tree_map(lambda a: a[config], scenes)
 
 

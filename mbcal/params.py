@@ -22,7 +22,7 @@ from mbcal.language.model import Model, ParamInfo
 
 Array = Any
 
-__all__ = ["ParameterSet", "Unknown", "DEFAULT_CONFIGURATION"]
+__all__ = ["ParameterSet", "ParamView", "Unknown", "DEFAULT_CONFIGURATION"]
 
 DEFAULT_CONFIGURATION = "default"
 
@@ -162,6 +162,10 @@ class ParameterSet:
         self._cols = np.asarray(cols, dtype=np.int64)
         self._src = np.asarray(src, dtype=np.int64)
         self._n_params = n
+        # For each parameter and configuration: the position in x of its unknown, or -1 when known.
+        source = np.full((len(configs), n), -1, dtype=np.int64)
+        source[self._rows, self._cols] = self._src
+        self._source = source
 
     # ---- basic properties ----------------------------------------------------------------------
 
@@ -230,6 +234,22 @@ class ParameterSet:
         x = jnp.asarray(x)
         return base.at[self._rows, self._cols].set(x[self._src])
 
+    def views(self, x: Array, known: Array | None = None) -> tuple[Array, Array]:
+        """What :class:`ParamView` needs, per configuration: the known rows and the configuration numbers."""
+        from mbcal._jax import jnp
+
+        base = jnp.asarray(self.known if known is None else known)
+        return base, jnp.arange(base.shape[0])
+
+    def view(self, x: Array, known_row: Array, config: Array) -> ParamView:
+        """One configuration's parameter values, reading unknowns from x and the rest from ``known_row``.
+
+        Unlike a row of :meth:`param`, the known values carry no derivative: forward-mode
+        differentiation then skips everything that depends on known values only (a camera on a
+        robot's neck, when only the arm is calibrated).
+        """
+        return ParamView(self._source, x, known_row, config)
+
     def X(self, x: Array | None = None) -> np.ndarray:
         """Like :meth:`param`, eagerly with numpy (default x: :attr:`x0`)."""
         X = self.known.copy()
@@ -287,3 +307,38 @@ def _listing(model: Model) -> str:
         return "the model declares no parameters"
     shown = ", ".join(names[:12]) + (", ..." if len(names) > 12 else "")
     return f"parameters: {shown}"
+
+
+class ParamView:
+    """Parameter values of one configuration, indexable like a row of X (see ParameterSet.view)."""
+
+    def __init__(self, source: np.ndarray, x: Array, known_row: Array, config: Array):
+        self._source = source
+        self._x = x
+        self._known = known_row
+        self._config = config
+
+    def __len__(self) -> int:
+        return int(self._source.shape[1])
+
+    @property
+    def shape(self) -> tuple[int]:
+        return (len(self),)
+
+    @property
+    def ndim(self) -> int:
+        return 1
+
+    def __getitem__(self, i: int) -> Array:
+        column = self._source[:, i]
+        if np.all(column < 0):
+            return self._known[i]  # known in every configuration: no derivative
+        if np.all(column == column[0]):
+            return self._x[int(column[0])]  # the same unknown in every configuration
+        from mbcal._jax import jnp
+
+        where = jnp.asarray(column)[self._config]
+        value = self._x[jnp.maximum(where, 0)]
+        if np.any(column < 0):
+            return jnp.where(where >= 0, value, self._known[i])
+        return value

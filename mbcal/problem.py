@@ -105,6 +105,12 @@ class Problem:
             groups.append(Group(mm, batch, np.asarray(members), start, whiten, diagonal))
             start += len(members) * mm.size
         self.groups: tuple[Group, ...] = tuple(groups)
+        from mbcal.modeling import Needs
+
+        needs = Needs()
+        for g in self.groups:
+            needs = needs.union(g.model.needs(model, g.batch))
+        self.needs = needs  # what the measurements read: the modeler skips the rest
         self.size = start  # rows of h
         # Which measurement and which value each row of h belongs to.
         self.row_measurement = np.zeros(self.size, dtype=np.int64)
@@ -117,12 +123,17 @@ class Problem:
         self.prior_index = np.nonzero(np.isfinite(sigma))[0] if priors else np.zeros(0, dtype=np.int64)
         self.prior_sigma = sigma[self.prior_index]
         self.prior_mean = self.params.prior_mean[self.prior_index]
+        from mbcal.cache import enable_compilation_cache
+
+        enable_compilation_cache()
         self._fun = self._make_residual()
         self._predict_jit = jax.jit(self._predict)
         self._residual_jit = jax.jit(self._fun)
         self._jacobian_jit = jax.jit(jax.jacfwd(self._fun))
         self._visible_jit = jax.jit(self._visible)
-        self._origins_jit = jax.jit(lambda x, known: self.scenes(x, known).frame_poses[..., :3, 3])
+        from mbcal.modeling import Needs
+
+        self._origins_jit = jax.jit(lambda x, known: self.scenes(x, known, Needs.everything()).frame_poses[..., :3, 3])
         self._point_cache: dict[Any, Any] = {}
 
     # ---- values ---------------------------------------------------------------------------------
@@ -149,10 +160,12 @@ class Problem:
 
     # ---- the functions the solver sees ------------------------------------------------------------
 
-    def scenes(self, x: Array, known: Array | None = None):
-        """The stacked scenes (one per configuration) for unknowns x."""
-        X = self.params.param(x, known)
-        return jax.vmap(lambda Xc: modeler(self.model, Xc))(X)
+    def scenes(self, x: Array, known: Array | None = None, needs=None):
+        """The stacked scenes (one per configuration) for unknowns x, with what the measurements need
+        (``needs`` overrides it; ``Needs.everything()`` for a whole scene)."""
+        needs = self.needs if needs is None else needs
+        rows, configs = self.params.views(x, known)
+        return jax.vmap(lambda row, c: modeler(self.model, self.params.view(x, row, c), needs))(rows, configs)
 
     def _predict(self, x: Array, known: Array) -> Array:
         scenes = self.scenes(x, known)
@@ -166,7 +179,7 @@ class Problem:
             if g.diagonal:
                 parts.append(jnp.reshape(e * g.whiten, (-1,)))
             else:
-                parts.append(jnp.reshape(jnp.einsum("nij,nj->ni", g.whiten, e), (-1,)))
+                parts.append(jnp.reshape(jnp.sum(g.whiten * e[:, None, :], axis=2), (-1,)))
         return jnp.concatenate(parts) if parts else jnp.zeros(0)
 
     def _make_residual(self):
@@ -221,9 +234,12 @@ class Problem:
         key = (configs.tobytes(), points.tobytes())
         fn = self._point_cache.get(key)
         if fn is None:
+            from mbcal.modeling import Needs
+
+            wanted = Needs(points=frozenset(int(p) for p in points))
 
             def positions(xx, known):
-                return self.scenes(xx, known).points[configs, points]
+                return self.scenes(xx, known, wanted).points[configs, points]
 
             fn = jax.jit(lambda xx, known: (positions(xx, known), jax.jacfwd(positions)(xx, known)))
             self._point_cache = {key: fn}
@@ -233,6 +249,32 @@ class Problem:
     def frame_origins(self, x: Array) -> np.ndarray:
         """World origin (C, F, 3) of every frame in every configuration."""
         return np.asarray(self._origins_jit(jnp.asarray(x, dtype=float), jnp.asarray(self.params.known)))
+
+    def fingerprint(self) -> str:
+        """A hash of everything the residual function depends on besides y and the known values:
+        the model's files and meshes, the measurement structure and σ, the unknowns, mbcal's code."""
+        from mbcal.cache import Hasher, code_fingerprint
+
+        h = Hasher().add(code_fingerprint(), self.size, self.params.names, self.params._source)
+        for path in self.model.files:
+            h.add(str(path)).add_file(path)
+        for shape in self.model.shapes:
+            if shape.mesh is not None:
+                h.add(shape.mesh.path).add_file(shape.mesh.path)
+        for g in self.groups:
+            b = g.batch
+            h.add(
+                g.model.kind,
+                type(g.model).__module__,
+                type(g.model).__qualname__,
+                b.config,
+                b.data,
+                g.whiten,
+                g.diagonal,
+                sorted((k, v.tobytes()) for k, v in b.refs.items()),
+            )
+        h.add(self.prior_index, self.prior_sigma, self.prior_mean, self.params.known.shape)
+        return h.hexdigest()
 
     def check_ready(self) -> None:
         """Refuse problems the solver cannot start on (no unknowns, no values)."""

@@ -554,7 +554,9 @@ def _check_shapes(shape_poses: Array, shape_dims: Array, shapes: Sequence) -> No
 
 def _to_local(T: Array, points: Array) -> Array:
     """World points (..., n, 3) in the frame of ``T`` (..., 4, 4): R^T (p - t)."""
-    return (points - T[..., None, :3, 3]) @ T[..., :3, :3]
+    # Rᵀ(p − t) as a broadcast product and sum: a matmul of 3-vectors is slow in XLA on a CPU.
+    d = points - T[..., None, :3, 3]
+    return jnp.sum(d[..., :, :, None] * T[..., None, :3, :3], axis=-2)
 
 
 def cast_rays(
@@ -590,7 +592,7 @@ def cast_rays(
     for i, shape in enumerate(shapes):
         T = shape_poses[..., i, :, :]
         o = _to_local(T, origins)
-        d = directions @ T[..., :3, :3]
+        d = jnp.sum(directions[..., :, :, None] * T[..., None, :3, :3], axis=-2)
         ts.append(ray_hit(shape.kind, o, d, shape_dims[..., i, None, :], shape.mesh, t_min))
     if not ts:
         shape = jnp.broadcast_shapes(origins.shape[:-1], directions.shape[:-1], shape_poses.shape[:-3] + (1,))

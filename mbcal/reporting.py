@@ -107,6 +107,7 @@ def result_json(r: CalibrationResult) -> dict[str, Any]:
         },
         "residuals": [row.to_json() for row in r.residuals],
         "outliers": {"threshold": r.outlier_threshold, "ids": [row.id for row in r.outliers]},
+        "not_visible": list(r.info.get("not_visible", [])),
         "points": [p.to_json() for p in r.points],
         "solver": {
             "loss": solver.config.loss,
@@ -235,6 +236,13 @@ def result_text(r: CalibrationResult, *, max_residuals: int = 15) -> str:
             title=f"residuals, worst first ({len(r.residuals)} in all):",
         )
     )
+    hidden = r.info.get("not_visible") or []
+    if hidden:
+        out.append(
+            f"warning: {len(hidden)} measurement(s) cannot be made at the solution (the point is behind the camera "
+            f"or outside its image, or the ray hits nothing): {', '.join(hidden[:8])}"
+            + (" …" if len(hidden) > 8 else "")
+        )
     if r.outliers:
         out.append(
             f"{len(r.outliers)} outlier(s) above {r.outlier_threshold:g}σ: "

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import pytest
@@ -10,6 +11,24 @@ ROOT = Path(__file__).resolve().parents[1]
 MODELS = ROOT / "models"
 MEASUREMENTS = ROOT / "measurements"
 SHARED_DATA = ROOT.parent / "shared" / "data"
+
+# A true pose of the factory corner that differs from its model by a few centimetres and degrees.
+ROOM_TRUTH = {
+    "room.x": 0.02,
+    "room.y": 0.05,
+    "room.z": 0.015,
+    "room.roll": math.radians(0.8),
+    "room.pitch": math.radians(-1.0),
+    "room.yaw": math.radians(1.2),
+}
+
+
+@pytest.fixture(scope="module")
+def room():
+    """The bundled factory-corner model."""
+    import mbcal
+
+    return mbcal.load_model(MODELS / "teleexistence.mdl")
 
 
 def shared_data(*parts: str) -> Path:

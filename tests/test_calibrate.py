@@ -12,21 +12,7 @@ import mbcal
 from mbcal.errors import SolverError
 from mbcal.problem import Problem
 
-from conftest import MEASUREMENTS, MODELS
-
-ROOM_TRUTH = {
-    "room.x": 0.02,
-    "room.y": 0.05,
-    "room.z": 0.015,
-    "room.roll": math.radians(0.8),
-    "room.pitch": math.radians(-1.0),
-    "room.yaw": math.radians(1.2),
-}
-
-
-@pytest.fixture(scope="module")
-def room():
-    return mbcal.load_model(MODELS / "teleexistence.mdl")
+from conftest import MEASUREMENTS, MODELS, ROOM_TRUTH
 
 
 @pytest.fixture(scope="module")

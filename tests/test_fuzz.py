@@ -93,16 +93,78 @@ def check(text: str, path: Path) -> None:
 
 # ---- grammar-aware generation ---------------------------------------------------------------------
 
-NAMES = ["a", "b", "x", "room.x", "lever.angle", "q1", "len", "undefined_name", "pi", "m", "frame", "é", "a.b.c",
-         "_x9", "q", "offset", "world", "sin"]
+NAMES = [
+    "a",
+    "b",
+    "x",
+    "room.x",
+    "lever.angle",
+    "q1",
+    "len",
+    "undefined_name",
+    "pi",
+    "m",
+    "frame",
+    "é",
+    "a.b.c",
+    "_x9",
+    "q",
+    "offset",
+    "world",
+    "sin",
+]
 UNITS = ["", " m", " cm", " mm", " deg", " rad", " inch", " um", "deg", " km"]
-NUMBERS = ["0", "1", "2.5", "-3", "1e308", "1e-308", "1e999", "0.000001", "123456789012345678901234567890", "7",
-           "3.14159", "0.0", "10", "1.5e3"]
-FUNCS = ["sin", "cos", "sqrt", "atan2", "min", "max", "abs", "translate", "rot_z", "rpy", "axis_angle", "look_at",
-         "pose", "quat", "norm", "nosuch", "hypot", "log", "exp", "cross", "dot"]
+NUMBERS = [
+    "0",
+    "1",
+    "2.5",
+    "-3",
+    "1e308",
+    "1e-308",
+    "1e999",
+    "0.000001",
+    "123456789012345678901234567890",
+    "7",
+    "3.14159",
+    "0.0",
+    "10",
+    "1.5e3",
+]
+FUNCS = [
+    "sin",
+    "cos",
+    "sqrt",
+    "atan2",
+    "min",
+    "max",
+    "abs",
+    "translate",
+    "rot_z",
+    "rpy",
+    "axis_angle",
+    "look_at",
+    "pose",
+    "quat",
+    "norm",
+    "nosuch",
+    "hypot",
+    "log",
+    "exp",
+    "cross",
+    "dot",
+]
 SHAPES = ["box", "cylinder", "cone", "sphere", "tube", "rectangle", "plane", "mesh", "torus"]
-FILES = ["ok.mdl", "missing.mdl", "cycle_a.mdl", "self.mdl", "binary.mdl", "latin1.mdl", "folder.mdl",
-         "../nowhere/x.mdl", "/abs/missing.mdl"]
+FILES = [
+    "ok.mdl",
+    "missing.mdl",
+    "cycle_a.mdl",
+    "self.mdl",
+    "binary.mdl",
+    "latin1.mdl",
+    "folder.mdl",
+    "../nowhere/x.mdl",
+    "/abs/missing.mdl",
+]
 MESHES = ["good.obj", "empty.stl", "corrupt.stl", "garbage.obj", "missing.stl", "folder.mdl", "x.xyz"]
 JUNK = ["$", "@", "{", "}", "(", ")", ",", ";", "=", "..", "±", "∞", "\u200b", "\t", "\\", '"', "#", "\x00", "🙂"]
 
@@ -131,20 +193,36 @@ POSE = st.one_of(st.just(""), st.builds(lambda e: f" at {e}", EXPR))
 
 def statements(depth: int = 3):
     simple = st.one_of(
-        st.builds(lambda n, e, r, p: f"param {n} = {e}{r}{p}", NAME, EXPR,
-                  st.one_of(st.just(""), st.builds(lambda a, b: f" in [{a}, {b}]", EXPR, EXPR)),
-                  st.sampled_from(["", " per configuration", " sigma 1 cm", " ± 2"])),
+        st.builds(
+            lambda n, e, r, p: f"param {n} = {e}{r}{p}",
+            NAME,
+            EXPR,
+            st.one_of(st.just(""), st.builds(lambda a, b: f" in [{a}, {b}]", EXPR, EXPR)),
+            st.sampled_from(["", " per configuration", " sigma 1 cm", " ± 2"]),
+        ),
         st.builds(lambda n, e: f"let {n} = {e}", NAME, EXPR),
         st.builds(lambda n, e: f"point {n} = {e}", NAME, EXPR),
-        st.builds(lambda k, args, pose: f"shape {k}({', '.join(args)}){pose}", st.sampled_from(SHAPES),
-                  st.lists(EXPR, max_size=4), POSE),
+        st.builds(
+            lambda k, args, pose: f"shape {k}({', '.join(args)}){pose}",
+            st.sampled_from(SHAPES),
+            st.lists(EXPR, max_size=4),
+            POSE,
+        ),
         st.builds(lambda m, s: f'shape mesh("{m}", scale = {s})', st.sampled_from(MESHES), EXPR),
-        st.builds(lambda k, a, q: f"joint {k}({a}, {q})", st.sampled_from(["revolute", "prismatic", "ball"]),
-                  st.sampled_from(["x", "-y", "z", "(0, 0, 0)", "(1, 2, 3)"]), EXPR),
+        st.builds(
+            lambda k, a, q: f"joint {k}({a}, {q})",
+            st.sampled_from(["revolute", "prismatic", "ball"]),
+            st.sampled_from(["x", "-y", "z", "(0, 0, 0)", "(1, 2, 3)"]),
+            EXPR,
+        ),
         st.builds(lambda n, w, h, f: f"camera {n}(width = {w}, height = {h}, f = {f})", NAME, EXPR, EXPR, EXPR),
         st.builds(lambda n, d: f"range {n}(direction = {d})", NAME, EXPR),
-        st.builds(lambda n, r, c: f"target {n} = chessboard(rows = {r}, cols = {c}, square = 2 cm)", NAME,
-                  st.sampled_from(["0", "3", "-1", "2.5", "1e9"]), st.sampled_from(["4", "0", "1e9"])),
+        st.builds(
+            lambda n, r, c: f"target {n} = chessboard(rows = {r}, cols = {c}, square = 2 cm)",
+            NAME,
+            st.sampled_from(["0", "3", "-1", "2.5", "1e9"]),
+            st.sampled_from(["4", "0", "1e9"]),
+        ),
         st.builds(lambda f: f'include "{f}"', st.sampled_from(FILES)),
         st.builds(lambda n: f"override {n} = 3", NAME),
         st.builds(lambda ks: f"measure {', '.join(ks)}", st.lists(NAME, min_size=1, max_size=3)),
@@ -155,12 +233,26 @@ def statements(depth: int = 3):
     body = st.lists(statements(depth - 1), max_size=4).map(lambda items: "\n".join(items))
     return st.one_of(
         simple,
-        st.builds(lambda kw, n, pose, b: f"{kw} {n}{pose} {{\n{b}\n}}", st.sampled_from(["frame", "object", "link"]),
-                  NAME, POSE, body),
-        st.builds(lambda n, ps, b: f"template {n}({', '.join(ps)}) {{\n{b}\n}}", NAME,
-                  st.lists(st.sampled_from(["a", "b = 2 m", "len", "x = pi"]), max_size=3), body),
-        st.builds(lambda n, t, args, pose: f"object {n} = {t}({', '.join(args)}){pose}", NAME, NAME,
-                  st.lists(EXPR, max_size=3), POSE),
+        st.builds(
+            lambda kw, n, pose, b: f"{kw} {n}{pose} {{\n{b}\n}}",
+            st.sampled_from(["frame", "object", "link"]),
+            NAME,
+            POSE,
+            body,
+        ),
+        st.builds(
+            lambda n, ps, b: f"template {n}({', '.join(ps)}) {{\n{b}\n}}",
+            NAME,
+            st.lists(st.sampled_from(["a", "b = 2 m", "len", "x = pi"]), max_size=3),
+            body,
+        ),
+        st.builds(
+            lambda n, t, args, pose: f"object {n} = {t}({', '.join(args)}){pose}",
+            NAME,
+            NAME,
+            st.lists(EXPR, max_size=3),
+            POSE,
+        ),
     )
 
 
@@ -213,9 +305,39 @@ def test_extreme_inputs_load_or_fail_with_a_located_error(text, workspace):
 # ---- mutation of the bundled models ------------------------------------------------------------------
 
 BUNDLED = {p.name: p.read_text(encoding="utf-8") for p in sorted(MODELS.glob("*.mdl"))}
-TOKENS = ["param", "frame", "{", "}", "(", ")", "=", ",", "at", "deg", "m", "1e309", "-", "*", "^", "include",
-          '"cycle_a.mdl"', "template", "object", "..", "±", "é", "\x00", "\n", "#", "per configuration",
-          'mesh("empty.stl")', "joint revolute(z, q)", "sigma", "in [", "]"]
+TOKENS = [
+    "param",
+    "frame",
+    "{",
+    "}",
+    "(",
+    ")",
+    "=",
+    ",",
+    "at",
+    "deg",
+    "m",
+    "1e309",
+    "-",
+    "*",
+    "^",
+    "include",
+    '"cycle_a.mdl"',
+    "template",
+    "object",
+    "..",
+    "±",
+    "é",
+    "\x00",
+    "\n",
+    "#",
+    "per configuration",
+    'mesh("empty.stl")',
+    "joint revolute(z, q)",
+    "sigma",
+    "in [",
+    "]",
+]
 
 
 @st.composite

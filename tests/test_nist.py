@@ -12,7 +12,8 @@ from mbcal.solver import SolverConfig, least_squares
 from conftest import shared_data
 
 PROBLEMS = sorted(name for name, level in DIFFICULTY.items() if level in ("lower", "average"))
-CONFIG = SolverConfig(max_iterations=1000)
+# Reference-grade precision: tolerances near float64 round-off (the defaults stop at 1e-10).
+CONFIG = SolverConfig(max_iterations=1000, ftol=1e-15, xtol=1e-15, gtol=1e-15)
 
 
 def log_relative_error(estimate, certified):

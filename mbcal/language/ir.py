@@ -145,6 +145,41 @@ def make_op(
     return Op(kind=kind, dim=dim, size=size, span=span, op=op, args=tuple(args))
 
 
+def walk(
+    node: Node,
+    memo: dict[int, Any],
+    const: Callable[[Const], Any],
+    param: Callable[[ParamRef], Any],
+    op: Callable[..., Any],
+) -> Any:
+    """Post-order evaluation of a node graph, without recursion: ``const(n)`` and ``param(n)``
+    give the leaves' values, ``op(name, *values)`` an operation's.  ``memo`` caches every node's
+    value by identity (shared nodes are evaluated once); the walk is iterative, so long chains
+    of ``let``s cannot exhaust Python's stack."""
+    if id(node) in memo:
+        return memo[id(node)]
+    stack = [node]
+    while stack:
+        n = stack[-1]
+        key = id(n)
+        if key in memo:
+            stack.pop()
+            continue
+        if isinstance(n, Const):
+            memo[key] = const(n)
+        elif isinstance(n, ParamRef):
+            memo[key] = param(n)
+        else:
+            assert isinstance(n, Op)
+            pending = [a for a in n.args if id(a) not in memo]
+            if pending:
+                stack.extend(pending)
+                continue
+            memo[key] = op(n.op, *[memo[id(a)] for a in n.args])
+        stack.pop()
+    return memo[id(node)]
+
+
 def evaluate(node: Node, X: Any, memo: dict[int, Any], xp: Any = None) -> Any:
     """The value of ``node`` for the parameter vector ``X``.
 
@@ -152,22 +187,13 @@ def evaluate(node: Node, X: Any, memo: dict[int, Any], xp: Any = None) -> Any:
     dict for every node of one scene.  ``xp`` is ``jax.numpy`` by default; pass ``numpy`` to
     evaluate eagerly on a numpy ``X``.
     """
-    key = id(node)
-    if key in memo:
-        return memo[key]
-    if isinstance(node, Const):
-        value = node.value
-    elif isinstance(node, ParamRef):
-        value = X[node.index]
-    else:
-        assert isinstance(node, Op)
-        if xp is None:
-            import jax.numpy as jnp
+    if id(node) in memo:
+        return memo[id(node)]
+    if xp is None:
+        import jax.numpy as jnp
 
-            xp = jnp
-        value = OPS[node.op](xp, *[evaluate(a, X, memo, xp) for a in node.args])
-    memo[key] = value
-    return value
+        xp = jnp
+    return walk(node, memo, lambda n: n.value, lambda n: X[n.index], lambda name, *a: OPS[name](xp, *a))
 
 
 def depends_on(node: Node) -> frozenset[int]:

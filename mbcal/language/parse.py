@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
+import sys
 from importlib import resources
 from pathlib import Path
 
@@ -20,6 +22,9 @@ MAX_INCLUDE_DEPTH = 32
 # Guard against pathological inputs (deep parentheses make Lark's and our own recursion deep).
 MAX_SOURCE_BYTES = 8 * 1024 * 1024
 MAX_NESTING = 200
+# Deepest syntax tree accepted (operators, calls, frames): deeper input is refused with a located
+# error before any recursive walk can overflow Python's stack.
+MAX_TREE_DEPTH = 300
 
 
 def grammar_path() -> Path:
@@ -417,6 +422,35 @@ def _check_nesting(text: str, path: str) -> None:
             depth = max(0, depth - 1)
 
 
+@contextlib.contextmanager
+def deep_recursion(limit: int = 8000):
+    """Allow the recursive walks over a (depth-checked) syntax tree more stack than Python's default."""
+    old = sys.getrecursionlimit()
+    sys.setrecursionlimit(max(old, limit))
+    try:
+        yield
+    finally:
+        sys.setrecursionlimit(old)
+
+
+def _check_depth(tree: lark.Tree, path: str) -> None:
+    """Refuse trees deeper than MAX_TREE_DEPTH (iteratively: no recursion here)."""
+    stack = [(tree, 1)]
+    while stack:
+        node, depth = stack.pop()
+        if depth > MAX_TREE_DEPTH:
+            meta = getattr(node, "meta", None)
+            line = getattr(meta, "line", 1) or 1
+            column = getattr(meta, "column", 1) or 1
+            raise MdlSyntaxError(
+                f"nested too deeply (more than {MAX_TREE_DEPTH} levels of expressions or frames)",
+                SourceSpan(path, line, column),
+            )
+        for child in node.children:
+            if isinstance(child, lark.Tree):
+                stack.append((child, depth + 1))
+
+
 def parse_text(text: str, path: str = "<string>") -> tuple[ast.Statement, ...]:
     """Parse model text into statements (includes are left unresolved).
 
@@ -436,8 +470,10 @@ def parse_text(text: str, path: str = "<string>") -> tuple[ast.Statement, ...]:
         tree = _parser().parse(text)
     except UnexpectedInput as err:
         raise _syntax_error(err, path, text) from None
+    _check_depth(tree, path)
     try:
-        return _ToAst(path).transform(tree)
+        with deep_recursion():
+            return _ToAst(path).transform(tree)
     except VisitError as err:
         if isinstance(err.orig_exc, MbcalError):
             raise err.orig_exc from None

@@ -147,6 +147,16 @@ class MeasurementModel:
         """Extra validation of one measurement; return an error message or None."""
         return None
 
+    def needs(self, model, batch: Batch):
+        """What :meth:`predict` reads from the scenes (a :class:`mbcal.modeling.Needs`).
+
+        The modeler then skips everything else, which makes compiling and solving faster.  The
+        default — everything — is always safe.
+        """
+        from mbcal.modeling import Needs
+
+        return Needs.everything()
+
     def candidates(self, model, configurations: list[str]) -> list[dict[str, Any]]:
         """Measurements of this kind that could be made in a model (records like a JSON file's).
 

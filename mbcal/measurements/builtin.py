@@ -23,7 +23,9 @@ import numpy as np
 
 from mbcal._jax import jax, jnp
 from mbcal.camera import project_camera_points
+from mbcal.language.ir import Const
 from mbcal.measurements import Batch, MeasurementModel, Role, frame_poses_with_world
+from mbcal.modeling import Needs
 
 if TYPE_CHECKING:
     from mbcal.scene import Scene
@@ -31,6 +33,24 @@ if TYPE_CHECKING:
 Array = Any
 
 __all__ = ["ImagePoint", "Point3D", "Distance", "Angle", "Range", "PointToSurface", "BUILTINS"]
+
+
+def rotate_t(R: Array, v: Array) -> Array:
+    """Rᵀ·v for stacks (n, 3, 3) and (n, 3), as a broadcast product and a sum.
+
+    An einsum or matmul here becomes thousands of 3×3 dot products under vmap and jacfwd, which
+    XLA runs slowly on a CPU; the elementwise form fuses into one kernel.
+    """
+    return jnp.sum(R * v[:, :, None], axis=1)
+
+
+def rotate(R: Array, v: Array) -> Array:
+    """R·v for stacks (n, 3, 3) and (n, 3) (see :func:`rotate_t`)."""
+    return jnp.sum(R * v[:, None, :], axis=2)
+
+
+def _is_zero(node) -> bool:
+    return isinstance(node, Const) and float(node.value) == 0.0
 
 
 def _points(scenes: Scene, batch: Batch, role: str) -> Array:
@@ -41,6 +61,12 @@ def _frame_poses(scenes: Scene, batch: Batch, role: str) -> Array:
     poses, world = frame_poses_with_world(scenes)
     index = np.where(batch.refs[role] < 0, world, batch.refs[role])
     return poses[batch.config, index]
+
+
+def _point_needs(batch: Batch, roles: tuple[str, ...], frames: tuple[str, ...] = ()) -> Needs:
+    points = frozenset(int(i) for r in roles for i in batch.refs[r])
+    framed = frozenset(int(i) for r in frames for i in batch.refs[r] if i >= 0)
+    return Needs(frames=framed, points=points)
 
 
 def _norm(v: Array) -> Array:
@@ -54,7 +80,7 @@ def _to_camera(scenes: Scene, batch: Batch) -> tuple[Array, np.ndarray]:
     frames = np.array([scenes.model.cameras[i].frame for i in cams], dtype=np.int64)
     T = scenes.frame_poses[batch.config, frames]
     p = _points(scenes, batch, "point")
-    return jnp.einsum("nji,nj->ni", T[:, :3, :3], p - T[:, :3, 3]), cams
+    return rotate_t(T[:, :3, :3], p - T[:, :3, 3]), cams
 
 
 class ImagePoint(MeasurementModel):
@@ -69,6 +95,17 @@ class ImagePoint(MeasurementModel):
 
     def predict(self, scenes: Scene, batch: Batch) -> Array:
         pc, cams = _to_camera(scenes, batch)
+        model = scenes.model
+        used = sorted(set(cams.tolist()))
+        if all(_is_zero(n) for k in used for n in model.cameras[k].distortion):
+            # No camera distorts: skip the polynomial (and its derivatives) altogether.
+            xy = pc[:, :2] / pc[:, 2:3]
+            if all(_is_zero(model.cameras[k].intrinsics[4]) for k in used):
+                if len(used) == 1 and all(isinstance(n, Const) for n in model.cameras[used[0]].intrinsics[:4]):
+                    fx, fy, cx, cy = (float(n.value) for n in model.cameras[used[0]].intrinsics[:4])
+                    return jnp.stack([fx * xy[:, 0] + cx, fy * xy[:, 1] + cy], axis=1)
+                K = scenes.camera_intrinsics[batch.config, cams]
+                return jnp.stack([K[:, 0] * xy[:, 0] + K[:, 2], K[:, 1] * xy[:, 1] + K[:, 3]], axis=1)
         return project_camera_points(
             pc, scenes.camera_intrinsics[batch.config, cams], scenes.camera_distortion[batch.config, cams]
         )
@@ -80,6 +117,12 @@ class ImagePoint(MeasurementModel):
             for c in model.cameras
             for p in model.points
         ]
+
+    def needs(self, model, batch: Batch) -> Needs:
+        return Needs(
+            points=frozenset(int(i) for i in batch.refs["point"]),
+            cameras=frozenset(int(i) for i in batch.refs["camera"]),
+        )
 
     def visible(self, scenes: Scene, batch: Batch) -> Array:
         pc, cams = _to_camera(scenes, batch)
@@ -102,7 +145,10 @@ class Point3D(MeasurementModel):
     def predict(self, scenes: Scene, batch: Batch) -> Array:
         T = _frame_poses(scenes, batch, "frame")
         p = _points(scenes, batch, "point")
-        return jnp.einsum("nji,nj->ni", T[:, :3, :3], p - T[:, :3, 3])
+        return rotate_t(T[:, :3, :3], p - T[:, :3, 3])
+
+    def needs(self, model, batch: Batch) -> Needs:
+        return _point_needs(batch, ("point",), ("frame",))
 
     def candidates(self, model, configurations):
         return [{"kind": self.kind, "point": p.name, "config": cfg} for cfg in configurations for p in model.points]
@@ -120,6 +166,9 @@ class Distance(MeasurementModel):
 
     def predict(self, scenes: Scene, batch: Batch) -> Array:
         return _norm(_points(scenes, batch, "a") - _points(scenes, batch, "b"))[:, None]
+
+    def needs(self, model, batch: Batch) -> Needs:
+        return _point_needs(batch, ("a", "b"))
 
     def candidates(self, model, configurations):
         names = [p.name for p in model.points]
@@ -148,6 +197,9 @@ class Angle(MeasurementModel):
         v = _points(scenes, batch, "d") - _points(scenes, batch, "c")
         return jnp.arctan2(_norm(jnp.cross(u, v)), jnp.sum(u * v, axis=1))[:, None]
 
+    def needs(self, model, batch: Batch) -> Needs:
+        return _point_needs(batch, ("a", "b", "c", "d"))
+
 
 class Range(MeasurementModel):
     """Distance along one ray of a range sensor to the first surface of the scene."""
@@ -160,6 +212,10 @@ class Range(MeasurementModel):
     value_dimension = "length"
     default_sigma = 1e-3
     description = "distance along ray number 'ray' of a range sensor to the first surface it hits"
+
+    def needs(self, model, batch: Batch) -> Needs:
+        frames = frozenset(model.ranges[int(s)].frame for s in batch.refs["sensor"])
+        return Needs(frames=frames, shapes=None)
 
     def check(self, model, refs, data):
         n = len(model.ranges[refs["sensor"]].directions)
@@ -188,7 +244,7 @@ class Range(MeasurementModel):
             np.stack([model.ranges[s].directions[r] for s, r in zip(sensors, rays)]) if len(batch) else np.zeros((0, 3))
         )
         T = scenes.frame_poses[batch.config, frames]
-        directions = jnp.einsum("nij,nj->ni", T[:, :3, :3], local)
+        directions = rotate(T[:, :3, :3], jnp.asarray(local))
         max_range = np.array([model.ranges[s].max_range for s in sensors], dtype=float)
         return T[:, :3, 3], directions, max_range
 
@@ -234,6 +290,13 @@ class PointToSurface(MeasurementModel):
     default_sigma = 1e-3
     description = "distance of a measured point (x, y, z in 'frame') to the surface of 'object' (0 when it fits)"
 
+    def needs(self, model, batch: Batch) -> Needs:
+        shapes = frozenset(
+            i for obj in set(batch.refs["object"].tolist()) for i in model.shapes_of(model.frames[obj].name)
+        )
+        frames = frozenset(int(i) for i in batch.refs["frame"] if i >= 0)
+        return Needs(frames=frames, shapes=shapes)
+
     def check(self, model, refs, data):
         if not model.shapes_of(model.frames[refs["object"]].name):
             return f"object '{model.frames[refs['object']].name}' has no shapes to measure a distance to"
@@ -244,7 +307,7 @@ class PointToSurface(MeasurementModel):
 
         model = scenes.model
         T = _frame_poses(scenes, batch, "frame")
-        p = jnp.einsum("nij,nj->ni", T[:, :3, :3], jnp.asarray(batch.data)) + T[:, :3, 3]
+        p = rotate(T[:, :3, :3], jnp.asarray(batch.data)) + T[:, :3, 3]
         out = jnp.zeros(len(batch))
         objects = batch.refs["object"]
         for obj in np.unique(objects):

@@ -1,0 +1,644 @@
+"""mbcal's benchmarks: one command, ratios measured in the same run, written to docs/performance.md.
+
+Run from the repository root (not part of the test suite)::
+
+    python bench/run.py                 # everything (about 10 minutes on 2 CPU cores)
+    python bench/run.py --only seed nist --out /tmp/perf.md
+
+Parts (``--only``):
+
+* ``seed`` — the seed's two problems (room pose, arm offsets) with 64 restarts: mbcal, warm,
+  against ``scipy.optimize.least_squares(method="lm")`` looped over the same 64 starts (a) with
+  scipy's finite differences and (b) with mbcal's compiled residual and Jacobian.
+* ``startup`` — the first call in a fresh process (trace + compile, split) and the time to the
+  first result in a second process that finds the caches (``mbcal.cache``), both in
+  subprocesses with an empty ``MBCAL_CACHE_DIR``.
+* ``scaling`` — time per solve as image points grow (24 → 24,000: one target with more
+  corners) and as unknowns grow (6 → 600: more views of a target, each with its own pose);
+  a PNG plot.
+* ``nist`` — NIST StRD: how many of the 27 problems × 2 starts reach 6 certified digits,
+  mbcal beside scipy's ``lm`` and ``trf`` (needs ../shared/data/nist).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+NIST = ROOT.parent / "shared" / "data" / "nist"
+GOALS = {"fd": 30.0, "jac": 3.0, "first": 1.5, "second": 0.5}
+
+
+def say(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def best_of(fn, repeats: int) -> float:
+    """The shortest of ``repeats`` timed calls (seconds): the least disturbed by the machine."""
+    out = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        out.append(time.perf_counter() - t0)
+    return min(out)
+
+
+# ---- the seed's problems ---------------------------------------------------------------------
+
+
+def seed_problem(name: str):
+    """(Problem, starts) of the seed's experiment ``name`` with 1 px simulated clicks, 64 restarts."""
+    import mbcal
+    from mbcal.problem import Problem
+    from mbcal.solver import random_starts
+
+    sys.path.insert(0, str(ROOT / "bench"))
+    from experiments import CASES
+
+    case = CASES[name]
+    model = mbcal.load_model(ROOT / case.model)
+    plan = mbcal.read_measurements(ROOT / case.plan, model)
+    data = mbcal.simulate(model, plan, case.truth, noise=1.0, seed=1)
+    problem = Problem(model, data, case.unknowns)
+    starts = random_starts(problem.params.x0, problem.params.lower, problem.params.upper, 64, 0)
+    return problem, starts
+
+
+def bench_seed(repeats: int) -> list[dict]:
+    from scipy.optimize import least_squares as scipy_ls
+
+    from mbcal._jax import jax, jnp
+    from mbcal.solver import least_squares
+
+    rows = []
+    for name in ("room", "arm"):
+        say(f"seed: {name}")
+        problem, starts = seed_problem(name)
+        y, known = jnp.asarray(problem.y), jnp.asarray(problem.params.known)
+        fun = problem.residual_function
+
+        def ours():
+            return least_squares(fun, starts, args=(y, known), size=problem.n_residuals)
+
+        solved = ours()  # compile
+        t_ours = best_of(ours, repeats)
+        res = jax.jit(lambda x: fun(x, y, known))
+        jac = jax.jit(jax.jacfwd(lambda x: fun(x, y, known)))
+
+        def f(x):
+            return np.asarray(res(x))
+
+        def J(x):
+            return np.asarray(jac(x))
+
+        f(starts[0]), J(starts[0])
+        out = {"problem": name, "m": problem.n_residuals, "n": problem.params.size, "mbcal_s": t_ours}
+        out["mbcal_cost"] = solved.cost_best
+        out["mbcal_iterations_median"] = float(np.median(solved.iterations))
+        out["mbcal_iterations_max"] = int(np.max(solved.iterations))
+        for label, kw in (("fd", {}), ("jac", {"jac": J})):
+            costs, nfev = [], [0]
+
+            def loop():
+                costs.clear()
+                nfev[0] = 0
+                for s in starts:
+                    r = scipy_ls(f, s, method="lm", **kw)
+                    costs.append(2 * r.cost)
+                    nfev[0] += r.nfev
+
+            t = best_of(loop, max(1, repeats // 3))
+            out[f"scipy_{label}_s"] = t
+            out[f"scipy_{label}_cost"] = min(costs)
+            out[f"scipy_{label}_nfev"] = nfev[0]
+            out[f"ratio_{label}"] = t / t_ours
+        rows.append(out)
+    return rows
+
+
+# ---- start-up: first call, second process ------------------------------------------------------
+
+CHILD = """
+import json, sys, time
+t0 = time.perf_counter()
+sys.path.insert(0, {root!r}); sys.path.insert(0, {bench!r})
+import numpy as np
+from run import seed_problem
+from mbcal._jax import jnp
+from mbcal.solver import SolverConfig, _compiled, least_squares
+t1 = time.perf_counter()
+problem, starts = seed_problem({name!r})
+t2 = time.perf_counter()
+out = {{"imports_s": t1 - t0, "setup_s": t2 - t1}}
+args = (jnp.asarray(problem.y), jnp.asarray(problem.params.known))
+if {split}:
+    jitted = _compiled(problem.residual_function, SolverConfig(), problem.n_residuals)
+    a = time.perf_counter(); lowered = jitted.lower(jnp.asarray(starts), args)
+    b = time.perf_counter(); compiled = lowered.compile()
+    c = time.perf_counter(); np.asarray(compiled(jnp.asarray(starts), args)[1])
+    d = time.perf_counter()
+    out.update(trace_s=b - a, compile_s=c - b, run_s=d - c)
+else:
+    a = time.perf_counter()
+    r = least_squares(problem.residual_function, starts, args=args, size=problem.n_residuals,
+                      cache_key=problem.fingerprint())
+    out["first_result_s"] = time.perf_counter() - a
+print(json.dumps(out))
+"""
+
+
+def child(name: str, cache: Path | None, split: bool) -> dict:
+    env = dict(os.environ)
+    if cache is None:
+        env["MBCAL_CACHE"] = "off"
+    else:
+        env["MBCAL_CACHE_DIR"] = str(cache)
+    code = CHILD.format(root=str(ROOT), bench=str(ROOT / "bench"), name=name, split=split)
+    proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, cwd=ROOT)
+    if proc.returncode:
+        raise RuntimeError(f"benchmark child failed:\n{proc.stderr}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def bench_startup() -> list[dict]:
+    rows = []
+    for name in ("room", "arm"):
+        say(f"startup: {name}")
+        split = child(name, None, split=True)
+        with tempfile.TemporaryDirectory() as tmp:
+            first = child(name, Path(tmp), split=False)
+            second = child(name, Path(tmp), split=False)
+        rows.append(
+            {
+                "problem": name,
+                **split,
+                "first_s": first["first_result_s"],
+                "second_s": second["first_result_s"],
+                "imports_s": second["imports_s"],
+                "setup_s": second["setup_s"],
+            }
+        )
+    return rows
+
+
+# ---- scaling ----------------------------------------------------------------------------------
+
+SCALING_MODEL = """
+# A target seen by a camera: its pose is unknown in every view (configuration).
+param board.x     = 0 m     per configuration
+param board.y     = 0 m     per configuration
+param board.z     = 0.5 m   per configuration
+param board.roll  = 0 deg   per configuration
+param board.pitch = 0 deg   per configuration
+param board.yaw   = 0 deg   per configuration
+camera cam(width = 640, height = 480, fx = 800, fy = 800, cx = 319.5, cy = 239.5)
+target board = chessboard(rows = {rows}, cols = {cols}, square = {square} m)
+    at pose(board.x, board.y, board.z, board.roll, board.pitch, board.yaw)
+"""
+
+
+def scaling_problem(rows: int, cols: int, views: int, folder: Path):
+    import mbcal
+    from mbcal.calibration import plan_views
+    from mbcal.problem import Problem
+
+    path = folder / f"board_{rows}x{cols}.mdl"
+    path.write_text(SCALING_MODEL.format(rows=rows, cols=cols, square=0.2 / max(rows, cols)))
+    model = mbcal.load_model(path)
+    poses = plan_views(model, views, seed=views, distance=(0.45, 0.55), tilt_deg=20.0)
+    info = model.target(None)
+    records = [
+        {"kind": "image_point", "camera": "cam", "point": p, "config": v, "sigma": 0.5}
+        for v in poses
+        for p in info.points
+    ]
+    plan = mbcal.measurements_from_records(records, model, configurations={v: {} for v in poses})
+    truth = {f"{k}@{v}": val for v, pose in poses.items() for k, val in pose.items()}
+    data = mbcal.simulate(model, plan, truth, noise=1.0, seed=0)
+    return Problem(model, data, ["board.*"])
+
+
+def bench_scaling(repeats: int, quick: bool) -> dict:
+    from mbcal._jax import jnp
+    from mbcal.solver import least_squares
+
+    sizes = [(4, 6), (8, 12), (12, 20), (24, 40), (40, 60), (80, 120), (120, 200)]
+    views = [1, 3, 10, 30, 100]
+    if quick:
+        sizes, views = sizes[:3], views[:3]
+    out = {"points": [], "unknowns": []}
+    with tempfile.TemporaryDirectory() as tmp:
+        for key, cases in (("points", [(r, c, 1) for r, c in sizes]), ("unknowns", [(4, 6, v) for v in views])):
+            for r, c, v in cases:
+                problem = scaling_problem(r, c, v, Path(tmp))
+                args = (jnp.asarray(problem.y), jnp.asarray(problem.params.known))
+                x0 = problem.params.x0[None]
+
+                def solve():
+                    return least_squares(problem.residual_function, x0, args=args, size=problem.n_residuals)
+
+                t0 = time.perf_counter()
+                solved = solve()
+                first = time.perf_counter() - t0
+                t = best_of(solve, repeats)
+                row = {
+                    "image_points": r * c * v,
+                    "unknowns": problem.params.size,
+                    "residuals": problem.n_residuals,
+                    "solve_s": t,
+                    "first_s": first,
+                    "iterations": int(solved.iterations[0]),
+                    "status": solved.status_best.label,
+                }
+                say(f"scaling: {row}")
+                out[key].append(row)
+    return out
+
+
+def scaling_plot(scaling: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for ax, key, label in ((axes[0], "points", "image points"), (axes[1], "unknowns", "unknowns")):
+        rows = scaling[key]
+        xs = [r["image_points" if key == "points" else "unknowns"] for r in rows]
+        per_it = [1e3 * r["solve_s"] / max(r["iterations"], 1) for r in rows]
+        ax.loglog(xs, [1e3 * r["solve_s"] for r in rows], "o-", label="time per solve")
+        ax.loglog(xs, per_it, "s--", label="time per iteration")
+        ax.set_xlabel(label)
+        ax.set_ylabel("ms")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend()
+    axes[0].set_title("more measurements (6 unknowns)")
+    axes[1].set_title("more unknowns (24 points per view)")
+    fig.suptitle("mbcal: one Marquardt solve, warm, CPU")
+    fig.tight_layout()
+    tmp = path.with_suffix(".tmp.png")
+    fig.savefig(tmp, dpi=110)
+    os.replace(tmp, path)
+
+
+def slope(rows: list[dict], key: str) -> float:
+    """The exponent b of time ∝ size^b over the larger half of the sizes (the asymptotic growth)."""
+    xs = np.log([r[key] for r in rows])[len(rows) // 2 :]
+    ys = np.log([r["solve_s"] / max(r["iterations"], 1) for r in rows])[len(rows) // 2 :]
+    return float(np.polyfit(xs, ys, 1)[0]) if len(xs) > 1 else float("nan")
+
+
+# ---- NIST -------------------------------------------------------------------------------------
+
+
+def bench_nist() -> dict | None:
+    if not NIST.is_dir():
+        say(f"nist: skipped, {NIST} not found")
+        return None
+    from scipy.optimize import least_squares as scipy_ls
+
+    from mbcal.datasets.nist import read_problem
+    from mbcal.solver import SolverConfig, least_squares
+
+    def digits(b, certified):
+        rel = np.abs(np.asarray(b) - certified) / np.abs(certified)
+        return float(-np.log10(max(np.max(rel), 1e-16)))
+
+    solvers = ["mbcal", "scipy lm", "scipy trf"]
+    settings = {"default": {}, "tight (1e-15)": {"ftol": 1e-15, "xtol": 1e-15, "gtol": 1e-15}}
+    counts = {s: {k: 0 for k in solvers} for s in settings}
+    fails = {s: {k: [] for k in solvers} for s in settings}
+    times = {s: dict.fromkeys(solvers, 0.0) for s in settings}
+    total = 0
+    for f in sorted(NIST.glob("*.dat")):
+        p = read_problem(f)
+        say(f"nist: {p.name}")
+        for k, start in enumerate(p.starts):
+            total += 1
+            for setting, tol in settings.items():
+                config = SolverConfig(**tol, max_iterations=1000) if tol else SolverConfig()
+                t0 = time.perf_counter()
+                r = least_squares(p.residual, start, args=(p.x, p.y), config=config)
+                times[setting]["mbcal"] += time.perf_counter() - t0
+                results = {"mbcal": r.x_best}
+
+                def fun(b, p=p):
+                    return np.asarray(p.residual(b, p.x, p.y))
+
+                for method in ("lm", "trf"):
+                    t0 = time.perf_counter()
+                    kw = dict(tol, max_nfev=100000) if tol else {}
+                    try:
+                        results[f"scipy {method}"] = scipy_ls(fun, start, method=method, **kw).x
+                    except Exception:  # scipy raises on some starts (e.g. non-finite residuals)
+                        results[f"scipy {method}"] = np.full_like(start, np.nan)
+                    times[setting][f"scipy {method}"] += time.perf_counter() - t0
+                for s, b in results.items():
+                    if digits(b, p.certified) >= 6:
+                        counts[setting][s] += 1
+                    else:
+                        fails[setting][s].append(f"{p.name}/{k + 1}")
+    return {"total": total, "counts": counts, "fails": fails, "times": times}
+
+
+# ---- the report -------------------------------------------------------------------------------
+
+
+def machine() -> list[str]:
+    import jax
+    import jaxlib
+    import scipy
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    mem = ""
+    try:
+        kb = int(Path("/proc/meminfo").read_text().split()[1])
+        mem = f", {kb / 2**20:.0f} GiB memory"
+    except (OSError, ValueError, IndexError):
+        pass
+    return [
+        f"- machine: {cpu}, {os.cpu_count()} cores{mem}, {platform.system()} {platform.release()}",
+        f"- Python {platform.python_version()}, JAX {jax.__version__} (jaxlib {jaxlib.__version__}, "
+        f"backend {jax.default_backend()}, {jax.device_count()} device(s)), "
+        f"NumPy {np.__version__}, SciPy {scipy.__version__}",
+        f"- run on {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}",
+    ]
+
+
+def md(head, rows) -> str:
+    out = ["| " + " | ".join(head) + " |", "|" + "|".join(["---"] + ["--:"] * (len(head) - 1)) + "|"]
+    return "\n".join(out + ["| " + " | ".join(str(c) for c in r) + " |" for r in rows])
+
+
+def ms(s: float) -> str:
+    return f"{1e3 * s:.1f}"
+
+
+def verdict(value: float, goal: float, higher_is_better: bool) -> str:
+    ok = value >= goal if higher_is_better else value <= goal
+    return "met" if ok else "**missed**"
+
+
+def report(results: dict, path: Path, plot: str | None) -> str:
+    lines = [
+        "# Performance",
+        "",
+        "Written by `python bench/run.py` (do not edit by hand; run it again).  Every ratio is",
+        "measured in the same run on the same machine; times are the best of several runs.",
+        "",
+        *machine(),
+        "",
+    ]
+    if "seed" in results:
+        lines += [
+            "## The seed's problems, 64 restarts",
+            "",
+            "mbcal (warm: compiled, all restarts in one vmapped call) against",
+            '`scipy.optimize.least_squares(method="lm")` looped over the same 64 starts, (a) with',
+            "scipy's finite differences, (b) with mbcal's compiled residual and Jacobian handed to scipy.",
+            "",
+        ]
+        rows = []
+        for r in results["seed"]:
+            rows.append(
+                [
+                    r["problem"],
+                    f"{r['m']} × {r['n']}",
+                    ms(r["mbcal_s"]),
+                    ms(r["scipy_fd_s"]),
+                    f"{r['ratio_fd']:.1f}× ({verdict(r['ratio_fd'], GOALS['fd'], True)})",
+                    ms(r["scipy_jac_s"]),
+                    f"{r['ratio_jac']:.1f}× ({verdict(r['ratio_jac'], GOALS['jac'], True)})",
+                    f"{r['mbcal_iterations_median']:.0f} / {r['mbcal_iterations_max']}",
+                    f"{r['mbcal_cost']:.4f} / {r['scipy_fd_cost']:.4f} / {r['scipy_jac_cost']:.4f}",
+                ]
+            )
+        lines += [
+            md(
+                [
+                    "problem",
+                    "residuals × unknowns",
+                    "mbcal (ms)",
+                    "scipy FD (ms)",
+                    "ratio (goal ≥ 30×)",
+                    "scipy + mbcal jac (ms)",
+                    "ratio (goal ≥ 3×)",
+                    "mbcal iterations median / max",
+                    "best S: mbcal / FD / jac",
+                ],
+                rows,
+            ),
+            "",
+        ]
+    if "startup" in results:
+        lines += [
+            "## Start-up",
+            "",
+            "Fresh processes (subprocesses of the benchmark).  *First call*: the time from a built",
+            "problem to its first result with no cache — tracing the model through vmap, jacfwd and",
+            "the Marquardt loop, XLA's compile, the run.  *Second process*: the same problem in a new",
+            "process that finds the persistent caches the first one wrote (`mbcal.cache`: the exported",
+            "program and XLA's compilation cache).  Imports and model loading are listed apart.",
+            "",
+        ]
+        rows = []
+        for r in results["startup"]:
+            first = r["trace_s"] + r["compile_s"] + r["run_s"]
+            rows.append(
+                [
+                    r["problem"],
+                    f"{first:.2f} ({verdict(first, GOALS['first'], False)})",
+                    f"{r['trace_s']:.2f}",
+                    f"{r['compile_s']:.2f}",
+                    f"{r['run_s']:.3f}",
+                    f"{r['first_s']:.2f}",
+                    f"{r['second_s']:.2f} ({verdict(r['second_s'], GOALS['second'], False)})",
+                    f"{r['imports_s']:.2f}",
+                    f"{r['setup_s']:.2f}",
+                ]
+            )
+        lines += [
+            md(
+                [
+                    "problem",
+                    "first call (s, goal ≤ 1.5)",
+                    "trace + lower",
+                    "compile",
+                    "run",
+                    "first process with cache on (s)",
+                    "second process (s, goal ≤ 0.5)",
+                    "imports",
+                    "load + plan",
+                ],
+                rows,
+            ),
+            "",
+        ]
+    if "scaling" in results:
+        sc = results["scaling"]
+        lines += [
+            "## Scaling",
+            "",
+            "One Marquardt solve (one start, warm), a chessboard-like target seen by one camera.",
+            "",
+        ]
+        for key, label in (
+            ("points", "image points (6 unknowns)"),
+            ("unknowns", "unknowns (views × 6, 24 points each)"),
+        ):
+            rows = [
+                [
+                    r["image_points"],
+                    r["unknowns"],
+                    r["residuals"],
+                    r["iterations"],
+                    ms(r["solve_s"]),
+                    f"{1e3 * r['solve_s'] / max(r['iterations'], 1):.2f}",
+                    f"{r['first_s']:.1f}",
+                    r["status"],
+                ]
+                for r in sc[key]
+            ]
+            lines += [
+                f"### Growing {label}",
+                "",
+                md(
+                    [
+                        "image points",
+                        "unknowns",
+                        "residuals",
+                        "iterations",
+                        "ms / solve",
+                        "ms / iteration",
+                        "first call (s)",
+                        "status",
+                    ],
+                    rows,
+                ),
+                "",
+            ]
+        b_m = slope(sc["points"], "image_points")
+        b_n = slope(sc["unknowns"], "unknowns")
+        lines += [
+            f"Time per iteration grows as about m^{b_m:.2f} with the image points m (over the larger",
+            f"half of the sizes) and as about n^{b_n:.2f} with the unknowns n.  One iteration evaluates",
+            "the residual and its Jacobian by forward-mode autodiff (n tangents through the whole",
+            "scene: ∝ m·n), forms JᵀJ (∝ m·n²) and solves an n × n system (∝ n³); so more measurements",
+            "cost linearly, and more unknowns superlinearly — a dense solver treats 100 independent",
+            "views as one coupled problem (block-sparse structure is not exploited yet).",
+            "",
+        ]
+        if plot:
+            lines += [f"![scaling]({plot})", ""]
+    if results.get("nist"):
+        n = results["nist"]
+        lines += [
+            "## NIST StRD nonlinear regression",
+            "",
+            f"{n['total']} runs (27 problems × 2 starts); a run counts when every parameter has at least",
+            "6 correct significant digits against the certified values.  *default*: each solver's own",
+            "default tolerances; *tight*: ftol = xtol = gtol = 1e-15 for all.",
+            "",
+        ]
+        rows = []
+        for setting, counts in n["counts"].items():
+            for s, c in counts.items():
+                missed = ", ".join(n["fails"][setting][s]) or "—"
+                rows.append([setting, s, f"{c} / {n['total']}", f"{n['times'][setting][s]:.1f}", missed])
+        lines += [md(["tolerances", "solver", "≥ 6 digits", "total time (s)", "missed"], rows), ""]
+    lines += [
+        "## What dominates, and what remains",
+        "",
+        *notes(results),
+        "",
+    ]
+    text = "\n".join(lines)
+    from mbcal.fileio import atomic_write
+
+    atomic_write(path, text)
+    return text
+
+
+def notes(results: dict) -> list[str]:
+    out = []
+    for r in results.get("seed", []):
+        if r["ratio_fd"] < GOALS["fd"] or r["ratio_jac"] < GOALS["jac"]:
+            out.append(
+                f"- {r['problem']}: {r['ratio_fd']:.1f}× over finite differences and {r['ratio_jac']:.1f}× over "
+                "scipy with our Jacobian, short of the goals.  The compiled solve is arithmetic-bound: "
+                f"{r['n']} forward-mode tangents through {r['m']} residuals for each of 64 restarts, per "
+                f"iteration (median {r['mbcal_iterations_median']:.0f}, the slowest restart "
+                f"{r['mbcal_iterations_max']}; the vmapped loop runs until the slowest is done).  Tried "
+                "without gain: sharding restarts over both cores, other XLA flags, an explicit loop "
+                "barrier.  What would help: stopping converged restarts early in batches, or a GPU."
+            )
+    for r in results.get("startup", []):
+        first = r["trace_s"] + r["compile_s"] + r["run_s"]
+        if first > GOALS["first"]:
+            out.append(
+                f"- {r['problem']} first call {first:.2f} s > 1.5 s: tracing {r['trace_s']:.2f} s (Python walking the "
+                f"model through vmap, jacfwd and the loop) and XLA's compile {r['compile_s']:.2f} s.  The "
+                "second process skips both (exported program + compilation cache); a cold first call remains."
+            )
+    if not out:
+        out.append("- Every goal measured here is met.")
+    return out
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument(
+        "--only",
+        nargs="+",
+        choices=["seed", "startup", "scaling", "nist"],
+        default=["seed", "startup", "scaling", "nist"],
+    )
+    parser.add_argument("--repeats", type=int, default=5, help="timed repeats (best of)")
+    parser.add_argument("--quick", action="store_true", help="small scaling sizes only")
+    parser.add_argument("--out", type=Path, default=ROOT / "docs" / "performance.md")
+    parser.add_argument("--json", type=Path, default=None, help="also write the raw numbers as JSON")
+    args = parser.parse_args(argv)
+    results: dict = {}
+    if "seed" in args.only:
+        results["seed"] = bench_seed(args.repeats)
+    if "startup" in args.only:
+        results["startup"] = bench_startup()
+    plot = None
+    if "scaling" in args.only:
+        results["scaling"] = bench_scaling(max(1, args.repeats // 2), args.quick)
+        image = args.out.parent / "images" / "scaling.png"
+        image.parent.mkdir(parents=True, exist_ok=True)
+        scaling_plot(results["scaling"], image)
+        plot = os.path.relpath(image, args.out.parent)
+    if "nist" in args.only:
+        results["nist"] = bench_nist()
+    text = report(results, args.out, plot)
+    if args.json:
+        from mbcal.fileio import atomic_write
+
+        atomic_write(args.json, json.dumps(results, indent=1, default=float) + "\n")
+    print(text)
+    print(f"\nwrote {args.out}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,152 @@
+"""Caches that make the second run of a problem start fast.
+
+Two caches, both in ``$MBCAL_CACHE_DIR`` (default ``$XDG_CACHE_HOME/mbcal`` or
+``~/.cache/mbcal``); ``MBCAL_CACHE=off`` turns both off:
+
+* JAX's persistent compilation cache (``jax/``): compiled XLA executables, keyed by JAX on the
+  program and the compiler — a compile becomes a file read.
+* exported solver programs (``exports/``): the traced and lowered solver of a problem, saved
+  with ``jax.export``.  Tracing a model through ``vmap``, ``jacfwd`` and the Marquardt loop takes
+  about a second; a second process that solves the same problem (the same model files, meshes,
+  measurement structure, unknowns, σ, solver settings, shapes and mbcal code — only the
+  measured values and known readings may differ) loads the program instead and, with the
+  compilation cache, gets its first result in a fraction of a second.
+
+Entries are keyed by content hashes, so a changed model, measurement plan or mbcal version never
+reuses a stale program.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import os
+import threading
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+__all__ = ["cache_dir", "enable_compilation_cache", "exported", "code_fingerprint", "Hasher"]
+
+_LOCK = threading.Lock()
+_LOADED: dict[str, Callable] = {}
+
+
+def cache_dir() -> Path | None:
+    """The cache folder, or None when caching is off."""
+    if os.environ.get("MBCAL_CACHE", "").lower() in ("0", "off", "no", "false"):
+        return None
+    if os.environ.get("MBCAL_CACHE_DIR"):
+        return Path(os.environ["MBCAL_CACHE_DIR"])
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "mbcal"
+
+
+@functools.lru_cache(maxsize=1)
+def enable_compilation_cache() -> Path | None:
+    """Point JAX's persistent compilation cache at ``cache_dir()/jax`` (once per process)."""
+    from mbcal._jax import jax
+
+    folder = cache_dir()
+    if folder is None:
+        return None
+    try:
+        (folder / "jax").mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return None  # an unwritable home: run without a cache
+    jax.config.update("jax_compilation_cache_dir", str(folder / "jax"))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
+    return folder / "jax"
+
+
+@functools.lru_cache(maxsize=1)
+def code_fingerprint() -> str:
+    """A hash of mbcal's own source: a new mbcal never reuses an old exported program."""
+    h = hashlib.sha256()
+    root = Path(__file__).resolve().parent
+    for path in sorted(root.rglob("*.py")):
+        h.update(path.relative_to(root).as_posix().encode())
+        h.update(path.read_bytes())
+    grammar = root.parent / "grammar" / "mdl.lark"
+    packaged = root / "grammar" / "mdl.lark"
+    for g in (packaged, grammar):
+        if g.is_file():
+            h.update(g.read_bytes())
+            break
+    from mbcal._jax import jax
+
+    h.update(jax.__version__.encode())
+    return h.hexdigest()
+
+
+class Hasher:
+    """A small helper to fingerprint mixed content (text, numbers, arrays, files)."""
+
+    def __init__(self):
+        self._h = hashlib.sha256()
+
+    def add(self, *items: Any) -> Hasher:
+        import numpy as np
+
+        for item in items:
+            if isinstance(item, np.ndarray):
+                self._h.update(str((item.dtype, item.shape)).encode())
+                self._h.update(np.ascontiguousarray(item).tobytes())
+            elif isinstance(item, (bytes, bytearray)):
+                self._h.update(item)
+            else:
+                self._h.update(repr(item).encode())
+            self._h.update(b"\x1f")
+        return self
+
+    def add_file(self, path: str | os.PathLike[str]) -> Hasher:
+        try:
+            self._h.update(Path(path).read_bytes())
+        except OSError:
+            self._h.update(f"<unreadable {path}>".encode())
+        return self
+
+    def hexdigest(self) -> str:
+        return self._h.hexdigest()
+
+
+def exported(key: str, jitted: Callable, *example: Any) -> Callable:
+    """A callable equivalent to ``jitted`` for arguments shaped like ``example``.
+
+    The first process to ask for ``key`` traces ``jitted`` and saves the lowered program; later
+    processes load it without tracing.  Without a cache (or without ``flatbuffers``, which
+    ``jax.export`` needs to serialise), ``jitted`` itself is returned.
+    """
+    folder = cache_dir()
+    if folder is None:
+        return jitted
+    with _LOCK:
+        if key in _LOADED:
+            return _LOADED[key]
+    try:
+        import flatbuffers  # noqa: F401  - jax.export's serialisation needs it
+        from jax import export
+    except ImportError:
+        return jitted
+    enable_compilation_cache()
+    path = folder / "exports" / f"{key}.jaxexport"
+    program = None
+    if path.is_file():
+        try:
+            program = export.deserialize(bytearray(path.read_bytes()))
+        except Exception:  # a truncated or foreign file: export it again
+            program = None
+    if program is None:
+        program = export.export(jitted)(*example)
+        try:
+            from mbcal.fileio import atomic_write
+
+            path.parent.mkdir(parents=True, exist_ok=True)
+            atomic_write(path, bytes(program.serialize()))
+        except OSError:
+            pass  # a read-only cache: still correct, only slower next time
+    call = program.call
+    with _LOCK:
+        _LOADED[key] = call
+    return call

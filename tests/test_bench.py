@@ -1,0 +1,35 @@
+"""The benchmark scripts keep working (a few trials, small sizes): they write the documents in docs/."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, *args], cwd=ROOT, capture_output=True, text=True, timeout=900)
+
+
+def test_experiments_script_reports_before_after_and_the_seed(tmp_path):
+    out = tmp_path / "experiments.md"
+    proc = run(
+        "bench/experiments.py", "--trials", "3", "--cases", "room", "--noise", "1", "--no-images", "--out", str(out)
+    )
+    assert proc.returncode == 0, proc.stderr
+    text = out.read_text()
+    assert "before (largest, lever)" in text and "| 4.11 | 16.31 |" in text  # the demo's perturbation
+    assert "1.5 | 2.9" in text  # the seed's numbers beside ours
+    assert "no structural model error" in text
+
+
+def test_benchmark_script_measures_scaling_and_writes_a_plot(tmp_path):
+    out = tmp_path / "performance.md"
+    proc = run("bench/run.py", "--only", "scaling", "--quick", "--repeats", "1", "--out", str(out))
+    assert proc.returncode == 0, proc.stderr
+    text = out.read_text()
+    assert "### Growing image points" in text and "converged" in text
+    png = tmp_path / "images" / "scaling.png"
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
