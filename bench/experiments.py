@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+import os
 import platform
 import sys
 import time
@@ -219,7 +220,7 @@ def run_case(case: Case, sigma: float, trials: int, restarts: int, seed: int, sa
     return out
 
 
-def overlays(case: Case, images: Path, say) -> list[str]:
+def overlays(case: Case, images: Path, doc_dir: Path, say) -> list[str]:
     """One calibration at 1 px, drawn over the (rendered) true camera image before and after."""
     from mbcal.modeling import modeler
     from mbcal.overlays import calibration_overlays
@@ -238,7 +239,7 @@ def overlays(case: Case, images: Path, say) -> list[str]:
         result, folder, backgrounds={CAMERA: background}, cameras=[CAMERA], configurations=[config]
     )
     say(f"  wrote {', '.join(p.name for p in written)}")
-    return [p.relative_to(images.parent).as_posix() for p in written]
+    return [Path(os.path.relpath(p, doc_dir)).as_posix() for p in written]
 
 
 def cm(v) -> str:
@@ -374,7 +375,7 @@ def write_doc(results: list[dict], pictures: dict[str, list[str]], path: Path, e
         "",
         *_verdict(results),
         "",
-        "Regenerate: `python bench/experiments.py` (about ten minutes on two CPU cores);",
+        "Regenerate: `python bench/experiments.py`;",
         "`--trials` and `--restarts` change the effort, `--out` the file.",
         "",
     ]
@@ -449,7 +450,7 @@ def main(argv=None) -> int:
         images = args.out.parent / "images" / "experiments"
         for name in args.cases:
             say(f"{name}: overlays")
-            pictures[name] = overlays(CASES[name], images, say)
+            pictures[name] = overlays(CASES[name], images, args.out.parent, say)
     text = write_doc(results, pictures, args.out, time.perf_counter() - t0)
     for r in results:
         (pp, pa), (mp, ma) = r["pred"], r["mc"]

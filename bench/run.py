@@ -541,9 +541,11 @@ def report(results: dict, path: Path, plot: str | None) -> str:
             f"Time per iteration grows as about m^{b_m:.2f} with the image points m (over the larger",
             f"half of the sizes) and as about n^{b_n:.2f} with the unknowns n.  One iteration evaluates",
             "the residual and its Jacobian by forward-mode autodiff (n tangents through the whole",
-            "scene: ∝ m·n), forms JᵀJ (∝ m·n²) and solves an n × n system (∝ n³); so more measurements",
-            "cost linearly, and more unknowns superlinearly — a dense solver treats 100 independent",
-            "views as one coupled problem (block-sparse structure is not exploited yet).",
+            "scene: ∝ m·n), forms JᵀJ (∝ m·n²) and solves an n × n system (∝ n³).  So more measurements",
+            "cost at most linearly (less at the small sizes, where fixed costs per iteration still",
+            "count), and more unknowns superlinearly: the dense solver treats 100 independent views as",
+            "one coupled problem (their block-sparse structure is not exploited yet), and the random",
+            "restarts multiply all of it.",
             "",
         ]
         if plot:
