@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import signal
 import subprocess
 import sys
@@ -211,13 +212,16 @@ def test_ctrl_c_leaves_no_partial_files(room_csv, tmp_path):
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        # Without the caches the solver is traced and compiled (seconds): the interrupt lands mid-run,
+        # however fast a cached solve would be.
+        env={**os.environ, "MBCAL_CACHE": "off"},
     )
     # Wait until it is solving, then interrupt it like Ctrl-C would.
     deadline = time.time() + 120
     line = ""
     while time.time() < deadline and "solving" not in line:
         line = proc.stderr.readline()
-    time.sleep(0.5)
+    time.sleep(0.2)
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=300)
     assert proc.returncode == 130, err
