@@ -215,6 +215,9 @@ def test_ctrl_c_leaves_no_partial_files(room_csv, tmp_path):
         # Without the caches the solver is traced and compiled (seconds): the interrupt lands mid-run,
         # however fast a cached solve would be.
         env={**os.environ, "MBCAL_CACHE": "off"},
+        # A runner started in the background ignores SIGINT, and children inherit that: restore
+        # the default so the child behaves as under a terminal.
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     # Wait until it is solving, then interrupt it like Ctrl-C would.
     deadline = time.time() + 120
