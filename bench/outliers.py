@@ -14,11 +14,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from test_reliability import TRUTH, misclicked  # noqa: E402
+from test_reliability import misclicked  # noqa: E402
 
 import mbcal  # noqa: E402
 from mbcal.report import table  # noqa: E402
 from mbcal.solver import SolverConfig  # noqa: E402
+
+from conftest import ROOM_TRUTH  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -29,7 +31,7 @@ def main(trials: int = 5) -> None:
     rows = {"least squares": [], "huber (1.345σ)": [], "cauchy (2.385σ)": []}
     recall = {k: [] for k in rows}
     for trial in range(trials):
-        clean = mbcal.simulate(room, plan, TRUTH, seed=100 + trial)
+        clean = mbcal.simulate(room, plan, ROOM_TRUTH, seed=100 + trial)
         dirty, bad = misclicked(clean, 0.2, seed=200 + trial)
         reference = mbcal.calibrate(room, clean, ["room.*"], restarts=8, points=[])
         for label, config in (

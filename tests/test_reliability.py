@@ -19,8 +19,6 @@ from mbcal.solver import SolverConfig, Status
 
 from conftest import MEASUREMENTS, MODELS, ROOM_TRUTH
 
-TRUTH = ROOM_TRUTH  # bench/outliers.py uses it too
-
 
 def misclicked(data, fraction: float, seed: int):
     """The same measurements with a fraction replaced by gross mis-clicks (20-80 px off)."""
@@ -36,7 +34,7 @@ def misclicked(data, fraction: float, seed: int):
 
 def test_robust_losses_recover_the_pose_despite_20_percent_misclicks(room):
     plan = mbcal.read_measurements(MEASUREMENTS / "room_plan.csv", room)
-    clean = mbcal.simulate(room, plan, TRUTH, seed=21)
+    clean = mbcal.simulate(room, plan, ROOM_TRUTH, seed=21)
     dirty, bad_ids = misclicked(clean, 0.2, seed=5)
     reference = mbcal.calibrate(room, clean, ["room.*"], restarts=8, points=[])
     plain = mbcal.calibrate(room, dirty, ["room.*"], restarts=8, points=[])
@@ -60,7 +58,7 @@ def test_too_few_measurements_are_reported_as_underdetermined(room):
         [{"kind": "image_point", "camera": "eyes.left", "point": p, "sigma": 1} for p in ("lever.tip", "lever.hub")],
         room,
     )
-    data = mbcal.simulate(room, plan, TRUTH, seed=1)
+    data = mbcal.simulate(room, plan, ROOM_TRUTH, seed=1)
     result = mbcal.calibrate(room, data, ["room.*"], restarts=4, points=[])
     verdict = result.observability.verdict()
     assert "underdetermined: 4 measured values for 6 unknowns" in verdict
