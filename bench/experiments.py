@@ -38,14 +38,15 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from plans import HAND_POINTS, ROOM_POINTS  # noqa: E402
+
 import mbcal  # noqa: E402
-from mbcal.demo import DEMO_TRUTH  # noqa: E402
-from mbcal.experiments import HAND_POINTS, ROOM_POINTS  # noqa: E402
-from mbcal.fileio import atomic_write  # noqa: E402
-from mbcal.measurements.files import MeasurementSet  # noqa: E402
+from mbcal.measurements.sets import MeasurementSet  # noqa: E402
+from mbcal.outputs import atomic_write  # noqa: E402
 from mbcal.problem import Problem  # noqa: E402
-from mbcal.report import table  # noqa: E402
 from mbcal.solver import SolverConfig, least_squares, random_starts  # noqa: E402
+from mbcal.text import table  # noqa: E402
+from mbcal.workflows.demo import DEMO_TRUTH  # noqa: E402
 
 CAMERA = "eyes.left"
 
@@ -145,7 +146,9 @@ def run_case(case: Case, sigma: float, trials: int, restarts: int, seed: int, sa
     params = problem.params
     x_true = params.from_dict({k: v for k, v in case.truth.items() if k in params.names})
     y_true, known = problem.y, np.asarray(params.known)
-    sigmas = np.concatenate([m.sigma for m in (exact.measurements[i] for g in problem.groups for i in g.members)])
+    sigmas = np.empty(problem.size)  # σ of every row of h
+    for m, rows in zip(exact.measurements, problem.measurement_rows):
+        sigmas[rows] = m.sigma
 
     # The covariance mbcal predicts (at the truth: the Monte Carlo's own linearisation point).
     J = problem.jacobian(x_true)
@@ -223,8 +226,8 @@ def run_case(case: Case, sigma: float, trials: int, restarts: int, seed: int, sa
 def overlays(case: Case, images: Path, doc_dir: Path, say) -> list[str]:
     """One calibration at 1 px, drawn over the (rendered) true camera image before and after."""
     from mbcal.modeling import modeler
-    from mbcal.overlays import calibration_overlays
-    from mbcal.render import render_view
+    from mbcal.render.overlays import calibration_overlays
+    from mbcal.render.views import render_view
 
     model = mbcal.load_model(ROOT / case.model)
     plan = mbcal.read_measurements(ROOT / case.plan, model)

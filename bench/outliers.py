@@ -17,8 +17,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from test_reliability import misclicked  # noqa: E402
 
 import mbcal  # noqa: E402
-from mbcal.report import table  # noqa: E402
 from mbcal.solver import SolverConfig  # noqa: E402
+from mbcal.text import table  # noqa: E402
 
 from conftest import ROOM_TRUTH  # noqa: E402
 

@@ -210,8 +210,8 @@ target board = chessboard(rows = {rows}, cols = {cols}, square = {square} m)
 
 def scaling_problem(rows: int, cols: int, views: int, folder: Path):
     import mbcal
-    from mbcal.calibration import plan_views
     from mbcal.problem import Problem
+    from mbcal.workflows.cameras import plan_views
 
     path = folder / f"board_{rows}x{cols}.mdl"
     path.write_text(SCALING_MODEL.format(rows=rows, cols=cols, square=0.2 / max(rows, cols)))
@@ -573,7 +573,7 @@ def report(results: dict, path: Path, plot: str | None) -> str:
         "",
     ]
     text = "\n".join(lines)
-    from mbcal.fileio import atomic_write
+    from mbcal.outputs import atomic_write
 
     atomic_write(path, text)
     return text
@@ -634,7 +634,7 @@ def main(argv=None) -> int:
         results["nist"] = bench_nist()
     text = report(results, args.out, plot)
     if args.json:
-        from mbcal.fileio import atomic_write
+        from mbcal.outputs import atomic_write
 
         atomic_write(args.json, json.dumps(results, indent=1, default=float) + "\n")
     print(text)

@@ -5,7 +5,7 @@ it, and estimate any parameter the measurements can observe.  The public API:
 
 >>> import mbcal
 >>> model = mbcal.load_model("models/teleexistence.mdl")          # doctest: +SKIP
->>> scene = mbcal.modeling(model, {"lever.angle": 0.5})             # doctest: +SKIP
+>>> scene = mbcal.modeler(model, {"lever.angle": 0.5})             # doctest: +SKIP
 >>> scene.point("room.valve.lever.tip")                             # doctest: +SKIP
 """
 
@@ -31,11 +31,11 @@ _EXPORTS = {
     "simulate": "mbcal.api",
     "observe": "mbcal.api",
     "CalibrationResult": "mbcal.api",
-    "read_measurements": "mbcal.measurements.files",
-    "write_measurements": "mbcal.measurements.files",
-    "measurements_from_records": "mbcal.measurements.files",
-    "MeasurementSet": "mbcal.measurements.files",
-    "Measurement": "mbcal.measurements.files",
+    "read_measurements": "mbcal.measurements.io",
+    "write_measurements": "mbcal.measurements.io",
+    "measurements_from_records": "mbcal.measurements.io",
+    "MeasurementSet": "mbcal.measurements.io",
+    "Measurement": "mbcal.measurements.io",
     "MeasurementModel": "mbcal.measurements",
     "Role": "mbcal.measurements",
     "Batch": "mbcal.measurements",

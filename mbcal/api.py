@@ -11,17 +11,17 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, fields, replace
 from typing import Any
 
 import numpy as np
 
 from mbcal.errors import MbcalError, SolverError
+from mbcal.errors import suggest as suggest_name
 from mbcal.language.model import Model
-from mbcal.measurements import get_model
-from mbcal.measurements.files import MeasurementSet, measurements_from_records
+from mbcal.measurements.registry import get_model
+from mbcal.measurements.sets import MeasurementSet, measurements_from_records
 from mbcal.observability import (
-    Observability,
     ObservabilityConfig,
     PointUncertainty,
     analyze,
@@ -30,180 +30,88 @@ from mbcal.observability import (
     unknown_scales,
 )
 from mbcal.problem import Problem
-from mbcal.solver import LeastSquaresResult, SolverConfig, Status, least_squares, random_starts
-from mbcal.units import to_display
+from mbcal.results import CalibrationResult, PlanAnalysis, ResidualRow, RunInfo
+from mbcal.solver import SolverConfig, least_squares, random_starts
 
 __all__ = [
     "calibrate",
     "simulate",
     "observe",
+    "CalibrateOptions",
     "CalibrationResult",
     "PlanAnalysis",
     "ResidualRow",
+    "RunInfo",
 ]
 
 
 @dataclass(frozen=True)
-class ResidualRow:
-    """One measurement at the solution."""
+class CalibrateOptions:
+    """How :func:`calibrate` runs.  Every field has the default the CLI uses too.
 
-    id: str
-    kind: str
-    config: str
-    refs: dict[str, str]
-    measured: np.ndarray
-    predicted: np.ndarray
-    normalized: float  # √((h − y)ᵀ W (h − y)): the residual in units of its σ
+    ``calibrate(model, data, estimate, restarts=32)`` is shorthand for
+    ``calibrate(model, data, estimate, CalibrateOptions(restarts=32))``.
+    """
 
-    @property
-    def residual(self) -> np.ndarray:
-        """measured − predicted, in the measurement's units."""
-        return self.measured - self.predicted
+    restarts: int = 16
+    """Number of starting points: the first is the nominal value (or ``initial``), the others are
+    drawn uniformly in each unknown's search range; all run in one compiled, vmapped call and the
+    one with the smallest S wins."""
+    seed: int | None = 0
+    """Seed of the random starting points (results are reproducible for a given seed)."""
+    config: SolverConfig | None = None
+    """Tolerances, iteration limit, robust loss (default: :class:`SolverConfig`)."""
+    known: Mapping[str, float] | None = None
+    """Known values (SI) that override the model and the measurement file."""
+    priors: bool = True
+    """Use the model's prior σ of the unknowns."""
+    scale_covariance: bool = False
+    """Multiply the covariance by the reduced χ² (when the σ of the measurements are not trusted)."""
+    points: Sequence[str] | None = None
+    """Points whose uncertainty to report (default: every measured point)."""
+    camera: str | None = None
+    """Camera whose line of sight splits the point uncertainty (default: the camera each point
+    was measured in)."""
+    suggest: bool = True
+    """When something is unobservable, rank candidate measurements that would help."""
+    observability: ObservabilityConfig | None = None
+    """Thresholds of the observability analysis."""
+    outlier_threshold: float = 3.0
+    """Measurements whose normalised residual exceeds this many σ are listed as outliers."""
+    initial: Mapping[str, float] | None = None
+    """Starting values of unknowns (``name`` or ``name@config``) for the first restart, e.g. from a
+    closed-form solution."""
+    progress: Callable[[str], None] | None = None
+    """Called with a short message at each step (compiling, analysing, ...)."""
 
-    def to_json(self) -> dict[str, Any]:
-        return {
-            "id": self.id,
-            "kind": self.kind,
-            "config": self.config,
-            "refs": self.refs,
-            "measured": [float(v) for v in self.measured],
-            "predicted": [float(v) for v in self.predicted],
-            "residual": [float(v) for v in self.residual],
-            "normalized": float(self.normalized),
-        }
+    def updated(self, changes: Mapping[str, Any]) -> CalibrateOptions:
+        """A copy with some fields changed; an unknown field name is an error that lists the fields."""
+        names = [f.name for f in fields(self)]
+        for key in changes:
+            if key not in names:
+                hint = suggest_name(key, names)
+                raise TypeError(
+                    f"calibrate() got an unexpected option '{key}'"
+                    + (f"; {hint}" if hint else "")
+                    + f" (options: {', '.join(names)})"
+                )
+        return replace(self, **changes)
 
 
 def _units(problem: Problem) -> dict[str, str]:
     return {u.name: u.param.unit for u in problem.params.unknowns}
 
 
-@dataclass
-class CalibrationResult:
-    """Everything a calibration found.
-
-    Values, σ and covariance are in SI units (metres, radians); ``display`` converts angles to
-    degrees for reports.  Unobservable unknowns have σ = inf (never NaN).
-    """
-
-    problem: Problem
-    solver: LeastSquaresResult
-    x: np.ndarray
-    x_initial: np.ndarray
-    observability: Observability
-    residuals: list[ResidualRow]
-    points: list[PointUncertainty]
-    cost: float
-    rms: dict[str, float]
-    elapsed: float
-    outlier_threshold: float = 3.0
-    info: dict[str, Any] = field(default_factory=dict)
-
-    # ---- headline numbers ----------------------------------------------------------------------
-
-    @property
-    def names(self) -> list[str]:
-        return self.problem.unknown_names
-
-    @property
-    def values(self) -> dict[str, float]:
-        return dict(zip(self.names, map(float, self.x)))
-
-    @property
-    def initial(self) -> dict[str, float]:
-        return dict(zip(self.names, map(float, self.x_initial)))
-
-    @property
-    def std(self) -> dict[str, float]:
-        return dict(zip(self.names, map(float, self.observability.std)))
-
-    @property
-    def covariance(self) -> np.ndarray:
-        return self.observability.covariance
-
-    @property
-    def correlation(self) -> np.ndarray:
-        return self.observability.correlation
-
-    @property
-    def status(self) -> Status:
-        return self.solver.status_best
-
-    @property
-    def converged(self) -> bool:
-        return self.solver.best >= 0 and self.status.converged
-
-    @property
-    def observable(self) -> bool:
-        return self.observability.observable_with_priors
-
-    @property
-    def ok(self) -> bool:
-        """Converged and every unknown determined."""
-        return self.converged and self.observable
-
-    @property
-    def n_measurements(self) -> int:
-        return self.problem.size
-
-    @property
-    def dof(self) -> int:
-        return max(self.problem.n_residuals - self.observability.rank_with_priors, 0)
-
-    @property
-    def reduced_chi2(self) -> float:
-        return self.cost / self.dof if self.dof > 0 else float("nan")
-
-    @property
-    def outliers(self) -> list[ResidualRow]:
-        """Measurements whose normalised residual exceeds the threshold, worst first."""
-        rows = [r for r in self.residuals if r.normalized > self.outlier_threshold]
-        return sorted(rows, key=lambda r: -r.normalized)
-
-    def display(self, name: str, value: float) -> float:
-        return to_display(self.problem.params.info(name).unit, value)
-
-    def unit(self, name: str) -> str:
-        return self.problem.params.info(name).unit
-
-    # ---- output ------------------------------------------------------------------------------------
-
-    def to_json(self) -> dict[str, Any]:
-        """The report as plain data (schema: docs/report.md)."""
-        from mbcal.reporting import result_json
-
-        return result_json(self)
-
-    def summary(self, *, max_residuals: int = 15) -> str:
-        """The report as text tables."""
-        from mbcal.reporting import result_text
-
-        return result_text(self, max_residuals=max_residuals)
-
-    def write_model(self, path, *, overwrite: bool = True) -> None:
-        """Write the model with the estimated values as its nominal values (the input is untouched)."""
-        from mbcal.writer import write_calibrated_model
-
-        write_calibrated_model(self, path, overwrite=overwrite)
-
-
 def _residual_rows(problem: Problem, x: np.ndarray) -> list[ResidualRow]:
     h = problem.predict(x)
     y = problem.y
     r = problem.residual(x)[: problem.size]
-    rows = []
-    for g in problem.groups:
-        s = g.model.size
-        for k, i in enumerate(g.members):
-            m = problem.measurements.measurements[i]
-            sl = slice(g.start + k * s, g.start + (k + 1) * s)
-            rows.append(
-                ResidualRow(
-                    m.id, m.kind, m.config, dict(m.refs), y[sl].copy(), h[sl].copy(), float(np.sqrt(np.sum(r[sl] ** 2)))
-                )
-            )
-    order = {m.id: i for i, m in enumerate(problem.measurements.measurements)}
-    rows.sort(key=lambda row: order[row.id])
-    return rows
+    return [
+        ResidualRow(
+            m.id, m.kind, m.config, dict(m.refs), y[rows].copy(), h[rows].copy(), float(np.sqrt(np.sum(r[rows] ** 2)))
+        )
+        for m, rows in zip(problem.measurements.measurements, problem.measurement_rows)
+    ]
 
 
 def _rms(problem: Problem, rows: list[ResidualRow]) -> dict[str, float]:
@@ -286,15 +194,11 @@ def _candidate_rows(problem: Problem, x: np.ndarray, measured_keys: set) -> list
     cand = Problem(model, plan, problem.unknown_names, priors=False)
     visible = cand.visible(x)
     J = cand.jacobian(x)
-    out = []
-    for g in cand.groups:
-        s = g.model.size
-        for k, i in enumerate(g.members):
-            if not visible[i]:
-                continue
-            rec = {key: val for key, val in records[i].items() if key != "sigma"}
-            out.append((rec, J[g.start + k * s : g.start + (k + 1) * s]))
-    return out
+    return [
+        ({key: val for key, val in record.items() if key != "sigma"}, J[rows])
+        for record, rows, seen in zip(records, cand.measurement_rows, visible)
+        if seen
+    ]
 
 
 def _measured_keys(ms: MeasurementSet) -> set:
@@ -309,20 +213,8 @@ def calibrate(
     model: Model,
     measurements: MeasurementSet,
     estimate: Sequence[str],
-    *,
-    restarts: int = 16,
-    seed: int | None = 0,
-    config: SolverConfig | None = None,
-    known: Mapping[str, float] | None = None,
-    priors: bool = True,
-    scale_covariance: bool = False,
-    points: Sequence[str] | None = None,
-    camera: str | None = None,
-    suggest: bool = True,
-    observability: ObservabilityConfig | None = None,
-    outlier_threshold: float = 3.0,
-    initial: Mapping[str, float] | None = None,
-    progress: Callable[[str], None] | None = None,
+    options: CalibrateOptions | None = None,
+    **changes: Any,
 ) -> CalibrationResult:
     """Estimate the unknowns from measurements (seed, section 3).
 
@@ -332,31 +224,16 @@ def calibrate(
     measurements : MeasurementSet
     estimate : sequence of str
         Names or glob patterns of the unknowns.
-    restarts : int
-        Number of starting points: the first is the nominal value, the others are drawn
-        uniformly in each unknown's search range; all run in one compiled, vmapped call and
-        the one with the smallest S wins.
-    seed : int
-        Seed of the random starting points (results are reproducible for a given seed).
-    config : SolverConfig
-        Tolerances, iteration limit, robust loss.
-    known : mapping
-        Known values that override the model and the file.
-    priors : bool
-        Use the model's prior σ of the unknowns.
-    scale_covariance : bool
-        Multiply the covariance by the reduced χ² (when the σ of the measurements are not trusted).
-    points : sequence of str
-        Points whose uncertainty to report (default: every measured point).
-    camera : str
-        Camera whose line of sight splits the point uncertainty (default: the camera each point
-        was measured in).
-    suggest : bool
-        When unobservable, rank candidate measurements that would help.
-    initial : mapping
-        Starting values of unknowns (``name`` or ``name@config``) for the first restart, e.g. from a
-        closed-form solution; the other restarts are drawn in the search ranges.
+    options : CalibrateOptions, optional
+        Restarts, seed, solver settings, known values, priors, ... (see :class:`CalibrateOptions`).
+    **changes
+        Any field of :class:`CalibrateOptions` by name, overriding ``options``:
+        ``calibrate(model, data, ["room.*"], restarts=32, seed=1)``.
     """
+    o = (options or CalibrateOptions()).updated(changes)
+    restarts, seed, config, known, priors = o.restarts, o.seed, o.config, o.known, o.priors
+    scale_covariance, points, camera, suggest = o.scale_covariance, o.points, o.camera, o.suggest
+    observability, outlier_threshold, initial, progress = o.observability, o.outlier_threshold, o.initial, o.progress
     t0 = time.perf_counter()
     say = progress or (lambda _msg: None)
     problem = Problem(model, measurements, estimate, known=known, priors=priors)
@@ -408,13 +285,7 @@ def calibrate(
         rms=_rms(problem, rows),
         elapsed=time.perf_counter() - t0,
         outlier_threshold=outlier_threshold,
-        info={
-            "restarts": restarts,
-            "seed": seed,
-            "config": config,
-            "scale_covariance": scale_covariance,
-            "not_visible": not_visible,
-        },
+        run=RunInfo(restarts, seed, config, scale_covariance, tuple(not_visible)),
     )
 
 
@@ -472,48 +343,18 @@ def simulate(
         x = x  # same unknowns
     h = problem.predict(x)
     rng = np.random.default_rng(seed)
-    values = []
-    for g in problem.groups:
+    values: list[np.ndarray] = [np.zeros(0)] * len(plan.measurements)
+    for g in problem.groups:  # group by group: the order of the noise draws (reproducible seeds)
         s = g.model.size
-        for k, i in enumerate(g.members):
-            m = plan.measurements[i]
-            mean = h[g.start + k * s : g.start + (k + 1) * s]
+        for i in g.members:
+            rows = problem.measurement_rows[i]
             if g.model.implicit_value is not None:
-                values.append((i, np.full(s, g.model.implicit_value)))
+                values[i] = np.full(s, g.model.implicit_value)
                 continue
+            m = plan.measurements[i]
             e = rng.multivariate_normal(np.zeros(s), m.cov) * np.sqrt(noise) if noise > 0 else np.zeros(s)
-            values.append((i, mean + e))
-    ordered = [v for _, v in sorted(values, key=lambda t: t[0])]
-    return plan.with_values(ordered)
-
-
-@dataclass
-class PlanAnalysis:
-    """Is a measurement plan enough? (``mbcal observe``)."""
-
-    problem: Problem
-    x: np.ndarray
-    observability: Observability
-    points: list[PointUncertainty]
-    invisible: list[str]
-
-    @property
-    def names(self) -> list[str]:
-        return self.problem.unknown_names
-
-    @property
-    def std(self) -> dict[str, float]:
-        return dict(zip(self.names, map(float, self.observability.std)))
-
-    def to_json(self) -> dict[str, Any]:
-        from mbcal.reporting import plan_json
-
-        return plan_json(self)
-
-    def summary(self) -> str:
-        from mbcal.reporting import plan_text
-
-        return plan_text(self)
+            values[i] = h[rows] + e
+    return plan.with_values(values)
 
 
 def observe(
@@ -539,11 +380,9 @@ def observe(
     visible = problem.visible(x)
     Jm, Jp = _jacobian_split(problem, x)
     Jm = Jm.copy()
-    for g in problem.groups:  # invisible measurements contribute nothing
-        s = g.model.size
-        for k, i in enumerate(g.members):
-            if not visible[i]:
-                Jm[g.start + k * s : g.start + (k + 1) * s] = 0.0
+    for rows, seen in zip(problem.measurement_rows, visible):
+        if not seen:
+            Jm[rows] = 0.0  # a measurement that cannot be made contributes nothing
     obs = analyze(Jm, Jp, problem.params.names, _units(problem), unknown_scales(problem.params), config=observability)
     if suggest and not obs.observable:
         obs.suggestions = rank_candidates(obs, Jm, Jp, _candidate_rows(problem, x, _measured_keys(plan)))

@@ -26,6 +26,18 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from mbcal._jax import jax
+from mbcal.outputs import atomic_write
+from mbcal.resources import find_bundled, package_root
+
+try:  # without them (a broken install) the exported-program cache is off, nothing else
+    import flatbuffers  # noqa: F401  - jax.export's serialisation needs it
+    from jax import export
+except ImportError:  # pragma: no cover
+    export = None  # type: ignore[assignment]
+
 __all__ = ["cache_dir", "enable_compilation_cache", "exported", "code_fingerprint", "Hasher"]
 
 _LOCK = threading.Lock()
@@ -45,8 +57,6 @@ def cache_dir() -> Path | None:
 @functools.lru_cache(maxsize=1)
 def enable_compilation_cache() -> Path | None:
     """Point JAX's persistent compilation cache at ``cache_dir()/jax`` (once per process)."""
-    from mbcal._jax import jax
-
     folder = cache_dir()
     if folder is None:
         return None
@@ -64,18 +74,13 @@ def enable_compilation_cache() -> Path | None:
 def code_fingerprint() -> str:
     """A hash of mbcal's own source: a new mbcal never reuses an old exported program."""
     h = hashlib.sha256()
-    root = Path(__file__).resolve().parent
+    root = package_root()
     for path in sorted(root.rglob("*.py")):
         h.update(path.relative_to(root).as_posix().encode())
         h.update(path.read_bytes())
-    grammar = root.parent / "grammar" / "mdl.lark"
-    packaged = root / "grammar" / "mdl.lark"
-    for g in (packaged, grammar):
-        if g.is_file():
-            h.update(g.read_bytes())
-            break
-    from mbcal._jax import jax
-
+    grammar = find_bundled("grammar/mdl.lark")
+    if grammar is not None:
+        h.update(grammar.read_bytes())
     h.update(jax.__version__.encode())
     return h.hexdigest()
 
@@ -87,8 +92,6 @@ class Hasher:
         self._h = hashlib.sha256()
 
     def add(self, *items: Any) -> Hasher:
-        import numpy as np
-
         for item in items:
             if isinstance(item, np.ndarray):
                 self._h.update(str((item.dtype, item.shape)).encode())
@@ -124,10 +127,7 @@ def exported(key: str, jitted: Callable, *example: Any) -> Callable:
     with _LOCK:
         if key in _LOADED:
             return _LOADED[key]
-    try:
-        import flatbuffers  # noqa: F401  - jax.export's serialisation needs it
-        from jax import export
-    except ImportError:
+    if export is None:
         return jitted
     enable_compilation_cache()
     path = folder / "exports" / f"{key}.jaxexport"
@@ -138,10 +138,8 @@ def exported(key: str, jitted: Callable, *example: Any) -> Callable:
         except Exception:  # a truncated or foreign file: export it again
             program = None
     if program is None:
-        program = export.export(jitted)(*example)
+        program = export.export(jitted)(*example)  # type: ignore[arg-type]  # a jax.jit result; stub wants jax.stages.Wrapped
         try:
-            from mbcal.fileio import atomic_write
-
             path.parent.mkdir(parents=True, exist_ok=True)
             atomic_write(path, bytes(program.serialize()))
         except OSError:

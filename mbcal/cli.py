@@ -9,16 +9,22 @@ converged); 130 means interrupted.
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import sys
 import textwrap
+import threading
+import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
 
+from mbcal import __version__
 from mbcal.errors import MbcalError
+from mbcal.outputs import atomic_write, check_output
+from mbcal.units import UNITS
 
 __all__ = ["main", "build_parser"]
 
@@ -50,10 +56,8 @@ def _add(sub, name: str, summary: str, description: str, example: str, func: Com
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-    from mbcal.language import load_model
-
     for i, path in enumerate(args.models):
-        model = load_model(path)
+        model = _load(path)
         if not args.quiet:
             if i:
                 print()
@@ -69,8 +73,6 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 def parse_assignments(items: Sequence[str]) -> dict[str, float]:
     """``NAME=VALUE[unit]`` strings → {name: SI value}; units as in models (``5cm``, ``30deg``)."""
-    from mbcal.units import UNITS
-
     out: dict[str, float] = {}
     for item in items:
         if "=" not in item:
@@ -97,15 +99,13 @@ def parse_assignments(items: Sequence[str]) -> dict[str, float]:
 
 
 def cmd_scene(args: argparse.Namespace) -> int:
-    from mbcal.fileio import atomic_write, check_output
-    from mbcal.language import load_model
-    from mbcal.modeling import modeler, parameter_vector
+    from mbcal.modeling import modeler, parameter_vector  # lazy: keeps JAX out of 'mbcal check'
 
     out = check_output(args.output, [args.model], overwrite=True)
     fmt = out.suffix.lower().lstrip(".")
     if fmt not in ("glb", "gltf", "obj", "stl", "ply", "off"):
         raise MbcalError(f"cannot export '{out.suffix}': use .glb, .obj, .stl, .ply or .off")
-    model = load_model(args.model)
+    model = _load(args.model)
     values = parse_assignments(args.set or [])
     scene = modeler(model, parameter_vector(model, values))
     tm = scene.to_trimesh(points=args.points)
@@ -131,20 +131,15 @@ class Progress:
     """Progress on stderr: a ticking line on a terminal, one line per step otherwise."""
 
     def __init__(self, enabled: bool = True):
-        import threading
-
         _ACTIVE_PROGRESS.append(self)
         self.enabled = enabled
         self.tty = enabled and sys.stderr.isatty()
         self._stop = threading.Event()
-        self._thread = None
+        self._thread: threading.Thread | None = None
         self._message = ""
         self._start = 0.0
 
     def step(self, message: str) -> None:
-        import threading
-        import time
-
         if not self.enabled:
             return
         self.done()
@@ -172,8 +167,6 @@ class Progress:
             print("\r\033[K", end="", file=sys.stderr, flush=True)
 
     def done(self) -> None:
-        import time
-
         if self._thread is not None:
             self._stop.set()
             self._thread.join()
@@ -183,17 +176,16 @@ class Progress:
 
 
 def _load(path: str):
-    from mbcal.language import load_model
+    from mbcal.language import load_model  # lazy: 'mbcal --help' does not load the parser
 
     return load_model(path)
 
 
 def _solver_config(args):
-    from mbcal.solver import SolverConfig
+    from mbcal.solver import SolverConfig  # lazy: keeps JAX out of 'mbcal check'
 
-    loss = args.loss or "linear"
-    scale = args.loss_scale if args.loss_scale is not None else {"huber": 1.345, "cauchy": 2.385}.get(loss, 1.0)
-    return SolverConfig(max_iterations=args.max_iterations, loss=loss, loss_scale=scale)
+    # The robust loss's scale defaults to the library's (Loss.default_scale): CLI and API agree.
+    return SolverConfig(max_iterations=args.max_iterations, loss=args.loss or "linear", loss_scale=args.loss_scale)
 
 
 def _estimate(model, patterns):
@@ -209,10 +201,6 @@ def _estimate(model, patterns):
 
 
 def _write_json(data, target: str, inputs) -> None:
-    import json
-
-    from mbcal.fileio import atomic_write, check_output
-
     text = json.dumps(data, indent=1, allow_nan=False) + "\n"
     if target == "-":
         sys.stdout.write(text)
@@ -231,8 +219,6 @@ def _say(args, text: str) -> None:
 
 def _check_outputs(args, inputs) -> None:
     """Validate every output path before any work is done (nothing is lost on a bad path)."""
-    from mbcal.fileio import check_output
-
     for attr in ("json", "write_model", "plot", "output"):
         value = getattr(args, attr, None)
         if value and value != "-":
@@ -247,8 +233,9 @@ def _check_outputs(args, inputs) -> None:
 
 
 def cmd_solve(args: argparse.Namespace) -> int:
-    from mbcal.api import calibrate
-    from mbcal.measurements.files import merge_measurements, read_measurements
+    from mbcal.api import calibrate  # lazy: keeps JAX out of 'mbcal check'
+    from mbcal.measurements.io import read_measurements  # lazy: keeps JAX out of 'mbcal check'
+    from mbcal.measurements.sets import merge_measurements  # lazy: keeps JAX out of 'mbcal check'
 
     inputs = [args.model, *args.measurements]
     _check_outputs(args, inputs)
@@ -276,8 +263,8 @@ def cmd_solve(args: argparse.Namespace) -> int:
     if args.overlay or args.plot:
         progress.step("drawing overlays and plots")
         if args.overlay:
-            from mbcal.overlays import calibration_overlays
-            from mbcal.render import load_image
+            from mbcal.render.overlays import calibration_overlays  # lazy: keeps JAX out of 'mbcal check'
+            from mbcal.render.views import load_image  # lazy: rendering loads only when a picture is made
 
             backgrounds = {}
             for item in args.background or []:
@@ -287,7 +274,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
                 backgrounds[cam] = load_image(path)
             calibration_overlays(result, args.overlay, backgrounds=backgrounds)
         if args.plot:
-            from mbcal.overlays import residual_plot
+            from mbcal.render.overlays import residual_plot  # lazy: keeps JAX out of 'mbcal check'
 
             residual_plot(result, args.plot)
     progress.done()
@@ -304,7 +291,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
 
 def _model_and_plan(args: argparse.Namespace):
     """Check the outputs, then read the model and the plan (or measurement file) of a command."""
-    from mbcal.measurements.files import read_measurements
+    from mbcal.measurements.io import read_measurements  # lazy: keeps JAX out of 'mbcal check'
 
     _check_outputs(args, [args.model, args.plan])
     model = _load(args.model)
@@ -312,8 +299,8 @@ def _model_and_plan(args: argparse.Namespace):
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from mbcal.api import simulate
-    from mbcal.measurements.files import write_measurements
+    from mbcal.api import simulate  # lazy: keeps JAX out of 'mbcal check'
+    from mbcal.measurements.io import write_measurements  # lazy: keeps JAX out of 'mbcal check'
 
     model, plan = _model_and_plan(args)
     truth = parse_assignments(args.set or [])
@@ -333,7 +320,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def cmd_observe(args: argparse.Namespace) -> int:
-    from mbcal.api import observe
+    from mbcal.api import observe  # lazy: keeps JAX out of 'mbcal check'
 
     model, plan = _model_and_plan(args)
     inputs = [args.model, args.plan]
@@ -351,8 +338,15 @@ def cmd_observe(args: argparse.Namespace) -> int:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    from mbcal.modeling import modeler, parameter_vector
-    from mbcal.render import Layer, draw_overlay, load_image, render_view, save_png, wireframe_layer
+    from mbcal.modeling import modeler, parameter_vector  # lazy: keeps JAX out of 'mbcal check'
+    from mbcal.render.views import (  # lazy: rendering loads only when a picture is made
+        Layer,
+        draw_overlay,
+        load_image,
+        render_view,
+        save_png,
+        wireframe_layer,
+    )
 
     inputs = [args.model] + ([args.background] if args.background else [])
     _check_outputs(args, inputs)
@@ -394,8 +388,8 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def cmd_convert(args: argparse.Namespace) -> int:
-    from mbcal.fileio import atomic_write, check_output
-    from mbcal.urdf import load_urdf, urdf_to_mdl
+    from mbcal.language import load_urdf  # lazy: 'mbcal --help' does not load the parser
+    from mbcal.language.urdf import urdf_to_mdl  # lazy: as above
 
     if Path(args.robot).suffix.lower() != ".urdf":
         raise MbcalError(f"convert reads a URDF robot description; {args.robot} is not a .urdf file")
@@ -410,8 +404,8 @@ def cmd_convert(args: argparse.Namespace) -> int:
 
 
 def cmd_detect(args: argparse.Namespace) -> int:
-    from mbcal.detect import detect_images
-    from mbcal.measurements.files import write_measurements
+    from mbcal.measurements.io import write_measurements  # lazy: keeps JAX out of 'mbcal check'
+    from mbcal.workflows.detect import detect_images  # lazy: keeps JAX out of 'mbcal check'
 
     _check_outputs(args, [args.target, *args.images])
     if not math.isfinite(args.sigma) or args.sigma <= 0:
@@ -430,8 +424,9 @@ def cmd_detect(args: argparse.Namespace) -> int:
 
 
 def cmd_calibrate_camera(args: argparse.Namespace) -> int:
-    from mbcal.calibration import calibrate_cameras, reprojection_images
-    from mbcal.measurements.files import merge_measurements, read_measurements
+    from mbcal.measurements.io import read_measurements  # lazy: keeps JAX out of 'mbcal check'
+    from mbcal.measurements.sets import merge_measurements  # lazy: keeps JAX out of 'mbcal check'
+    from mbcal.workflows.cameras import calibrate_cameras, reprojection_images  # lazy: keeps JAX out of 'mbcal check'
 
     inputs = [args.model, *args.measurements]
     _check_outputs(args, inputs)
@@ -466,7 +461,7 @@ def cmd_calibrate_camera(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from mbcal.demo import run_demo
+    from mbcal.workflows.demo import run_demo  # lazy: keeps JAX out of 'mbcal check'
 
     return run_demo(
         out=Path(args.output),
@@ -477,6 +472,18 @@ def cmd_demo(args: argparse.Namespace) -> int:
     )
 
 
+def _set_option(p: argparse.ArgumentParser, help: str) -> None:
+    p.add_argument("--set", action="append", metavar="NAME=VALUE", help=help)
+
+
+def _quiet_option(p: argparse.ArgumentParser, help: str = "print nothing on success") -> None:
+    p.add_argument("-q", "--quiet", action="store_true", help=help)
+
+
+def _json_option(p: argparse.ArgumentParser, what: str = "the JSON report") -> None:
+    p.add_argument("--json", metavar="REPORT.json", help=f"write {what} ('-' for stdout)")
+
+
 def _add_solver_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--estimate",
@@ -485,12 +492,7 @@ def _add_solver_options(p: argparse.ArgumentParser) -> None:
         help="parameters to estimate (names or globs such as 'room.*'; name@config for one "
         "configuration's copy); default: every parameter with a search range",
     )
-    p.add_argument(
-        "--set",
-        action="append",
-        metavar="NAME=VALUE",
-        help="a known value that replaces the model's (lever.angle=30deg); repeatable",
-    )
+    _set_option(p, "a known value that replaces the model's (lever.angle=30deg); repeatable")
     p.add_argument("--no-priors", action="store_true", help="ignore the model's prior σ of the unknowns")
     p.add_argument("--camera", metavar="NAME", help="camera whose line of sight splits point uncertainties")
 
@@ -535,7 +537,7 @@ def _register_commands(sub) -> None:
         metavar="K",
         help="list measurements whose residual exceeds K σ (default 3)",
     )
-    p.add_argument("--json", metavar="REPORT.json", help="write the JSON report ('-' for stdout)")
+    _json_option(p)
     p.add_argument("--write-model", metavar="OUT.mdl", help="write the calibrated model (the input is untouched)")
     p.add_argument("--overlay", metavar="DIR", help="write before/after overlay images (PNG) into DIR")
     p.add_argument(
@@ -545,7 +547,7 @@ def _register_commands(sub) -> None:
         help="the real image of a camera, for the overlays; repeatable",
     )
     p.add_argument("--plot", metavar="RESIDUALS.png", help="write a residual plot (PNG)")
-    p.add_argument("-q", "--quiet", action="store_true", help="print nothing (use the exit status, --json)")
+    _quiet_option(p, "print nothing (use the exit status, --json)")
 
     p = _add(
         sub,
@@ -564,7 +566,7 @@ def _register_commands(sub) -> None:
     )
     p.add_argument("model", metavar="MODEL")
     p.add_argument("plan", metavar="PLAN", help="measurement plan (.csv or .json)")
-    p.add_argument("--set", action="append", metavar="NAME=VALUE", help="a true value (room.x=2cm); repeatable")
+    _set_option(p, "a true value (room.x=2cm); repeatable")
     p.add_argument(
         "--noise", type=float, default=1.0, metavar="F", help="noise in units of each σ (default 1; 0: exact)"
     )
@@ -575,7 +577,7 @@ def _register_commands(sub) -> None:
         help="leave out measurements that cannot be made (behind or outside a camera)",
     )
     p.add_argument("-o", "--output", required=True, metavar="MEASUREMENTS", help="output file (.csv or .json)")
-    p.add_argument("-q", "--quiet", action="store_true")
+    _quiet_option(p)
 
     p = _add(
         sub,
@@ -594,8 +596,8 @@ def _register_commands(sub) -> None:
     p.add_argument("plan", metavar="PLAN")
     _add_solver_options(p)
     p.add_argument("--at", action="append", metavar="NAME=VALUE", help="analyse at this value instead of nominal")
-    p.add_argument("--json", metavar="REPORT.json", help="write the analysis as JSON ('-' for stdout)")
-    p.add_argument("-q", "--quiet", action="store_true")
+    _json_option(p, "the analysis as JSON")
+    _quiet_option(p)
 
     p = _add(
         sub,
@@ -615,12 +617,12 @@ def _register_commands(sub) -> None:
     )
     p.add_argument("model", metavar="MODEL")
     p.add_argument("--camera", metavar="NAME", help="camera to render from (default: the first)")
-    p.add_argument("--set", action="append", metavar="NAME=VALUE", help="a parameter value; repeatable")
+    _set_option(p, "a parameter value; repeatable")
     p.add_argument("--background", metavar="PHOTO", help="a real image of the camera to draw over")
     p.add_argument("--wireframe", action="store_true", help="draw the model's visible edges")
     p.add_argument("--points", action="store_true", help="mark the named points")
     p.add_argument("-o", "--output", required=True, metavar="OUT.png")
-    p.add_argument("-q", "--quiet", action="store_true")
+    _quiet_option(p)
 
     p = _add(
         sub,
@@ -637,7 +639,7 @@ def _register_commands(sub) -> None:
     )
     p.add_argument("robot", metavar="ROBOT.urdf")
     p.add_argument("-o", "--output", required=True, metavar="OUT.mdl")
-    p.add_argument("-q", "--quiet", action="store_true")
+    _quiet_option(p)
 
     p = _add(
         sub,
@@ -660,7 +662,7 @@ def _register_commands(sub) -> None:
     p.add_argument("--camera", metavar="NAME", help="the camera that took the images (default: the first)")
     p.add_argument("--sigma", type=float, default=0.5, metavar="PX", help="σ of a detected corner (default 0.5 px)")
     p.add_argument("-o", "--output", required=True, metavar="CORNERS.json", help="measurement file (.json or .csv)")
-    p.add_argument("-q", "--quiet", action="store_true")
+    _quiet_option(p)
 
     p = _add(
         sub,
@@ -692,9 +694,9 @@ def _register_commands(sub) -> None:
     p.add_argument("--no-init", action="store_true", help="start from the model's nominal values, not Zhang's method")
     p.add_argument("--image", action="append", metavar="CONFIG=PATH", help="the image of a view, for --overlay")
     p.add_argument("--overlay", metavar="DIR", help="write each image with its detected and reprojected corners")
-    p.add_argument("--json", metavar="REPORT.json", help="write the JSON report ('-' for stdout)")
+    _json_option(p)
     p.add_argument("--write-model", metavar="OUT.mdl", help="write the calibrated model")
-    p.add_argument("-q", "--quiet", action="store_true")
+    _quiet_option(p)
 
     p = _add(
         sub,
@@ -713,7 +715,7 @@ def _register_commands(sub) -> None:
     p.add_argument("-o", "--output", default="mbcal-demo", metavar="DIR", help="output folder (default mbcal-demo)")
     p.add_argument("--restarts", type=int, default=32, metavar="N")
     p.add_argument("--seed", type=int, default=0, metavar="S")
-    p.add_argument("-q", "--quiet", action="store_true")
+    _quiet_option(p)
 
 
 # ---- the parser ---------------------------------------------------------------------------------
@@ -721,8 +723,6 @@ def _register_commands(sub) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``mbcal`` command."""
-    from mbcal import __version__
-
     parser = argparse.ArgumentParser(
         prog="mbcal",
         description=textwrap.dedent(
@@ -752,7 +752,7 @@ def build_parser() -> argparse.ArgumentParser:
         cmd_check,
     )
     p.add_argument("models", nargs="+", metavar="MODEL", help="model files (.mdl or .urdf)")
-    p.add_argument("-q", "--quiet", action="store_true", help="print nothing on success")
+    _quiet_option(p, "print nothing on success")
 
     p = _add(
         sub,
@@ -768,14 +768,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("model", metavar="MODEL", help="model file (.mdl or .urdf)")
     p.add_argument("-o", "--output", required=True, metavar="OUT", help="output file: .glb, .obj, .stl, .ply or .off")
-    p.add_argument(
-        "--set",
-        action="append",
-        metavar="NAME=VALUE",
-        help="parameter value, with a unit if wanted (lever.angle=45deg); repeatable",
-    )
+    _set_option(p, "parameter value, with a unit if wanted (lever.angle=45deg); repeatable")
     p.add_argument("--points", action="store_true", help="mark every named point with a small sphere")
-    p.add_argument("-q", "--quiet", action="store_true", help="print nothing on success")
+    _quiet_option(p, "print nothing on success")
 
     _register_commands(sub)
     return parser

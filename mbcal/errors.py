@@ -30,6 +30,9 @@ __all__ = [
     "UnknownNameError",
     "MeasurementFileError",
     "SolverError",
+    "UrdfError",
+    "OutputError",
+    "RenderError",
     "suggest",
     "remember_source",
 ]
@@ -170,6 +173,18 @@ class MeasurementFileError(MbcalError):
 
 class SolverError(MbcalError):
     """A problem cannot be set up for the solver (e.g. no unknowns)."""
+
+
+class UrdfError(MdlError):
+    """A URDF file cannot be read or turned into a model."""
+
+
+class OutputError(MbcalError):
+    """An output cannot be written (it would overwrite an input, its folder is missing, ...)."""
+
+
+class RenderError(MbcalError):
+    """Headless rendering is not available (no EGL/OSMesa) or failed."""
 
 
 def suggest(name: str, candidates: Iterable[str], n: int = 3) -> str | None:

@@ -12,11 +12,13 @@ from typing import Any
 
 import numpy as np
 
-from mbcal import geometry as geo
 from mbcal._jax import jnp
 from mbcal.errors import ParameterError
+from mbcal.geometry import transforms as geo
 from mbcal.language import ir, soa
+from mbcal.language import soa_math as sm
 from mbcal.language.model import JointInfo, Model
+from mbcal.params import ParamView
 from mbcal.scene import Scene
 
 Array = Any
@@ -32,16 +34,16 @@ def parameter_vector(model: Model, values: Mapping[str, float] | None = None) ->
     return X
 
 
-def _joint_motion(joint: JointInfo, ev) -> soa.Transform:
+def _joint_motion(joint: JointInfo, ev) -> sm.Transform:
     q = ev(joint.q)
     axis = ev(joint.axis)
     if joint.kind == "prismatic":
         if joint.offset is not None:
-            q = soa.add(q, ev(joint.offset))
-        return soa.I3, tuple(soa.mul(a, q) for a in axis)
+            q = sm.add(q, ev(joint.offset))
+        return sm.I3, tuple(sm.mul(a, q) for a in axis)
     if joint.offset is not None:
-        q = soa.add(q, ev(joint.offset))
-    return soa.rodrigues(axis, q), soa.ZERO3
+        q = sm.add(q, ev(joint.offset))
+    return sm.rodrigues(axis, q), sm.ZERO3
 
 
 @dataclass(frozen=True)
@@ -111,8 +113,6 @@ def modeler(model: Model, X: Array | Mapping[str, float], needs: Needs | None = 
         World poses of frames and shapes, world positions of points, camera intrinsics.
         Differentiable with respect to ``X``.
     """
-    from mbcal.params import ParamView
-
     if isinstance(X, Mapping):
         X = parameter_vector(model, X)
     if not isinstance(X, ParamView) and (jnp.ndim(X) != 1 or jnp.shape(X)[0] != len(model.params)):
@@ -125,17 +125,19 @@ def modeler(model: Model, X: Array | Mapping[str, float], needs: Needs | None = 
     def ev(node: ir.Node):
         return soa.evaluate(node, X, memo)
 
-    # Frame poses as (R, t) of scalars: constants fold away while tracing (see language/soa.py).
+    # Frame poses as (R, t) of scalars: constants fold away while tracing (see language/soa_math.py).
     # Each pose is kept as (variable part, constant offset): constant offsets are combined with
     # numpy, and a traced product is made only where a parameter enters the chain, so a rigid
     # object under a moving frame costs no operations at all.
     wanted_frames = _frames_needed(model, needs)
-    lazy: list[tuple[soa.Transform, np.ndarray] | None] = []
+    lazy: list[tuple[sm.Transform, np.ndarray] | None] = []
     for index, frame in enumerate(model.frames):
         if index not in wanted_frames:
             lazy.append(None)
             continue
-        var, const = lazy[frame.parent] if frame.parent >= 0 else (soa.IDENTITY, np.eye(4))
+        parent = lazy[frame.parent] if frame.parent >= 0 else (sm.IDENTITY, np.eye(4))
+        assert parent is not None  # _frames_needed keeps every ancestor of a wanted frame
+        var, const = parent
         for local in (frame.pose, frame.joint):
             if local is None:
                 continue
@@ -146,27 +148,29 @@ def modeler(model: Model, X: Array | Mapping[str, float], needs: Needs | None = 
                 continue
             else:
                 value = ev(local)
-            var = soa.compose(var, soa.compose(soa.from_constant(const, ir.TRANSFORM), value))
+            var = sm.compose(var, sm.compose(sm.from_constant(const, ir.TRANSFORM), value))
             const = np.eye(4)
         lazy.append((var, const))
 
     eye = np.eye(4)
 
-    def world(frame: int) -> soa.Transform:
-        if frame < 0 or lazy[frame] is None:
-            return soa.IDENTITY
-        var, const = lazy[frame]
-        return soa.compose(var, soa.from_constant(const, ir.TRANSFORM))
+    def world(frame: int) -> sm.Transform:
+        entry = lazy[frame] if frame >= 0 else None
+        if entry is None:
+            return sm.IDENTITY
+        var, const = entry
+        return sm.compose(var, sm.from_constant(const, ir.TRANSFORM))
 
     def place(frame: int, position: ir.Node) -> tuple:
         """A point's world position: a constant point goes through the constant offset in numpy."""
-        if frame < 0 or lazy[frame] is None:
+        entry = lazy[frame] if frame >= 0 else None
+        if entry is None:
             return ev(position)
-        var, const = lazy[frame]
+        var, const = entry
         if isinstance(position, ir.Const):
             local = const[:3, :3] @ np.asarray(position.value, dtype=float) + const[:3, 3]
-            return soa.apply_point(var, tuple(float(v) for v in local))
-        return soa.apply_point(var, soa.apply_point(soa.from_constant(const, ir.TRANSFORM), ev(position)))
+            return sm.apply_point(var, tuple(float(v) for v in local))
+        return sm.apply_point(var, sm.apply_point(sm.from_constant(const, ir.TRANSFORM), ev(position)))
 
     # Only frames that are read go into the scene's array; ancestors needed to place points and
     # sensors stay out of it (stacking them would materialise their derivatives for nothing).
@@ -175,7 +179,7 @@ def modeler(model: Model, X: Array | Mapping[str, float], needs: Needs | None = 
     if needs.frames is None:
         read_frames.update(r.frame for r in model.ranges)
     frame_poses = _stack(
-        [soa.transform_to_matrix(world(i)) if i in read_frames else eye for i in range(len(model.frames))],
+        [sm.transform_to_matrix(world(i)) if i in read_frames else eye for i in range(len(model.frames))],
         (0, 4, 4),
     )
 
@@ -185,21 +189,24 @@ def modeler(model: Model, X: Array | Mapping[str, float], needs: Needs | None = 
     blocks: list[Any] = []
     order: list[int] = []
     by_frame: dict[int, list[int]] = {}
+    constant_at: dict[int, np.ndarray] = {}  # point index -> its constant position
     for i in point_list:
         p = model.points[i]
         if isinstance(p.position, ir.Const):
             by_frame.setdefault(p.frame, []).append(i)
+            constant_at[i] = np.asarray(p.position.value, dtype=float)
         else:
-            blocks.append(soa.stack_scalars(place(p.frame, p.position))[None, :])
+            blocks.append(sm.stack_scalars(place(p.frame, p.position))[None, :])
             order.append(i)
-    for frame, members in by_frame.items():
-        local = np.stack([np.asarray(model.points[i].position.value, dtype=float) for i in members])
-        if frame >= 0 and lazy[frame] is not None:
-            var, const = lazy[frame]
-            local = local @ const[:3, :3].T + const[:3, 3]
+    for owner, members in by_frame.items():
+        positions = np.stack([constant_at[i] for i in members])
+        entry = lazy[owner] if owner >= 0 else None
+        if entry is not None:
+            var, const = entry
+            positions = positions @ const[:3, :3].T + const[:3, 3]
         else:
-            var = soa.IDENTITY
-        blocks.append(soa.stack_scalars(soa.apply_point(var, tuple(local[:, k] for k in range(3)))))
+            var = sm.IDENTITY
+        blocks.append(sm.stack_scalars(sm.apply_point(var, tuple(positions[:, k] for k in range(3)))))
         order.extend(members)
     if not blocks:
         points = jnp.zeros((len(model.points), 3))
@@ -215,14 +222,14 @@ def modeler(model: Model, X: Array | Mapping[str, float], needs: Needs | None = 
     zeros5 = np.zeros(5)
     intrinsics = _stack(
         [
-            soa.stack_scalars([ev(n) for n in c.intrinsics]) if k in camera_list else zeros5
+            sm.stack_scalars([ev(n) for n in c.intrinsics]) if k in camera_list else zeros5
             for k, c in enumerate(model.cameras)
         ],
         (0, 5),
     )
     distortion = _stack(
         [
-            soa.stack_scalars([ev(n) for n in c.distortion]) if k in camera_list else zeros5
+            sm.stack_scalars([ev(n) for n in c.distortion]) if k in camera_list else zeros5
             for k, c in enumerate(model.cameras)
         ],
         (0, 5),
@@ -238,9 +245,9 @@ def modeler(model: Model, X: Array | Mapping[str, float], needs: Needs | None = 
             continue
         T = world(s.frame)
         if s.pose is not None:
-            T = soa.compose(T, ev(s.pose))
-        shape_poses.append(soa.transform_to_matrix(T))
-        shape_dims.append(soa.stack_scalars([ev(n) for n in s.dims] + [0.0] * (3 - len(s.dims))))
+            T = sm.compose(T, ev(s.pose))
+        shape_poses.append(sm.transform_to_matrix(T))
+        shape_dims.append(sm.stack_scalars([ev(n) for n in s.dims] + [0.0] * (3 - len(s.dims))))
     return Scene(
         model=model,
         frame_poses=frame_poses,

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from mbcal._jax import jnp
 from mbcal.errors import ParameterError, suggest
 from mbcal.language.model import Model, ParamInfo
 
@@ -226,8 +227,6 @@ class ParameterSet:
         Differentiable with respect to ``x`` (JAX).  ``known`` replaces :attr:`known` (same shape)
         without recompiling a jitted caller.
         """
-        from mbcal._jax import jnp
-
         base = jnp.asarray(self.known if known is None else known)
         if self.size == 0:
             return base
@@ -236,8 +235,6 @@ class ParameterSet:
 
     def views(self, x: Array, known: Array | None = None) -> tuple[Array, Array]:
         """What :class:`ParamView` needs, per configuration: the known rows and the configuration numbers."""
-        from mbcal._jax import jnp
-
         base = jnp.asarray(self.known if known is None else known)
         return base, jnp.arange(base.shape[0])
 
@@ -335,8 +332,6 @@ class ParamView:
             return self._known[i]  # known in every configuration: no derivative
         if np.all(column == column[0]):
             return self._x[int(column[0])]  # the same unknown in every configuration
-        from mbcal._jax import jnp
-
         where = jnp.asarray(column)[self._config]
         value = self._x[jnp.maximum(where, 0)]
         if np.any(column < 0):

@@ -16,11 +16,15 @@ from typing import Any
 import numpy as np
 
 from mbcal._jax import jax, jnp
+from mbcal.cache import Hasher, code_fingerprint, enable_compilation_cache
 from mbcal.errors import SolverError
+from mbcal.geometry.shapes import runtime_shapes
+from mbcal.language.functions import runtime_functions
 from mbcal.language.model import Model
-from mbcal.measurements import Batch, MeasurementModel, get_model
-from mbcal.measurements.files import MeasurementSet
-from mbcal.modeling import modeler
+from mbcal.measurements.protocol import Batch, MeasurementModel
+from mbcal.measurements.registry import get_model
+from mbcal.measurements.sets import MeasurementSet
+from mbcal.modeling import Needs, modeler
 from mbcal.params import ParameterSet
 
 Array = Any
@@ -105,34 +109,32 @@ class Problem:
             groups.append(Group(mm, batch, np.asarray(members), start, whiten, diagonal))
             start += len(members) * mm.size
         self.groups: tuple[Group, ...] = tuple(groups)
-        from mbcal.modeling import Needs
-
         needs = Needs()
         for g in self.groups:
             needs = needs.union(g.model.needs(model, g.batch))
         self.needs = needs  # what the measurements read: the modeler skips the rest
         self.size = start  # rows of h
-        # Which measurement and which value each row of h belongs to.
+        # Which measurement and which value each row of h belongs to, and the reverse: the rows
+        # of h (and of the residual and Jacobian) of each measurement, in the set's order.
         self.row_measurement = np.zeros(self.size, dtype=np.int64)
         self.row_component = np.zeros(self.size, dtype=np.int64)
+        self.measurement_rows: list[slice] = [slice(0, 0)] * len(measurements.measurements)
         for g in self.groups:
             s = g.model.size
             self.row_measurement[g.start : g.start + g.rows] = np.repeat(g.members, s)
             self.row_component[g.start : g.start + g.rows] = np.tile(np.arange(s), len(g.members))
+            for k, i in enumerate(g.members):
+                self.measurement_rows[int(i)] = slice(g.start + k * s, g.start + (k + 1) * s)
         sigma = self.params.prior_sigma
         self.prior_index = np.nonzero(np.isfinite(sigma))[0] if priors else np.zeros(0, dtype=np.int64)
         self.prior_sigma = sigma[self.prior_index]
         self.prior_mean = self.params.prior_mean[self.prior_index]
-        from mbcal.cache import enable_compilation_cache
-
         enable_compilation_cache()
         self._fun = self._make_residual()
         self._predict_jit = jax.jit(self._predict)
         self._residual_jit = jax.jit(self._fun)
         self._jacobian_jit = jax.jit(jax.jacfwd(self._fun))
         self._visible_jit = jax.jit(self._visible)
-        from mbcal.modeling import Needs
-
         self._origins_jit = jax.jit(lambda x, known: self.scenes(x, known, Needs.everything()).frame_poses[..., :3, 3])
         self._point_cache: dict[Any, Any] = {}
 
@@ -142,11 +144,9 @@ class Problem:
     def y(self) -> np.ndarray:
         """The measured values stacked like h (NaN where a plan has none)."""
         y = np.full(self.size, np.nan)
-        for g in self.groups:
-            for k, i in enumerate(g.members):
-                v = self.measurements.measurements[i].value
-                if v is not None:
-                    y[g.start + k * g.model.size : g.start + (k + 1) * g.model.size] = v
+        for m, rows in zip(self.measurements.measurements, self.measurement_rows):
+            if m.value is not None:
+                y[rows] = m.value
         return y
 
     @property
@@ -234,8 +234,6 @@ class Problem:
         key = (configs.tobytes(), points.tobytes())
         fn = self._point_cache.get(key)
         if fn is None:
-            from mbcal.modeling import Needs
-
             wanted = Needs(points=frozenset(int(p) for p in points))
 
             def positions(xx, known):
@@ -250,11 +248,15 @@ class Problem:
         """World origin (C, F, 3) of every frame in every configuration."""
         return np.asarray(self._origins_jit(jnp.asarray(x, dtype=float), jnp.asarray(self.params.known)))
 
-    def fingerprint(self) -> str:
+    def fingerprint(self) -> str | None:
         """A hash of everything the residual function depends on besides y and the known values:
-        the model's files and meshes, the measurement structure and σ, the unknowns, mbcal's code."""
-        from mbcal.cache import Hasher, code_fingerprint
+        the model's files and meshes, the measurement structure and σ, the unknowns, mbcal's code.
 
+        None — do not cache the compiled program across processes — while shape kinds or language
+        functions registered at run time exist: their code is not part of mbcal's fingerprint, and
+        a changed implementation must never reuse an old program."""
+        if runtime_shapes() or runtime_functions():
+            return None
         h = Hasher().add(code_fingerprint(), self.size, self.params.names, self.params._source)
         for path in self.model.files:
             h.add(str(path)).add_file(path)

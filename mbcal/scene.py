@@ -13,7 +13,8 @@ from typing import Any
 import numpy as np
 
 from mbcal._jax import jax, jnp
-from mbcal.camera import project_camera_points
+from mbcal.geometry.camera import project_camera_points
+from mbcal.geometry.shapes import shape_mesh
 from mbcal.language.model import Model
 
 Array = Any
@@ -72,7 +73,7 @@ class Scene:
     shape_poses : (S, 4, 4) float
         ``T_world_shape`` of every shape.
     shape_dims : (S, 3) float
-        The shape's dimensions (see ``SHAPE_KINDS``), padded with zeros.
+        The shape's dimensions (see :mod:`mbcal.geometry.shapes`), padded with zeros.
     """
 
     model: Model
@@ -154,40 +155,6 @@ class Scene:
                 T[:3, 3] = pts[i]
                 scene.add_geometry(marker, node_name=f"point:{p.name}", geom_name=f"point:{p.name}", transform=T)
         return scene
-
-
-def shape_mesh(
-    kind: str, dims: np.ndarray, mesh_data=None, *, plane_size: float = 10.0, sections: int = 48, two_sided: bool = True
-):
-    """A trimesh of one shape in its own frame (centred, axis along z).
-
-    Flat shapes get faces on both sides unless ``two_sided`` is False (renderers that draw
-    back faces themselves, where doubled faces would fight for the depth buffer).
-    """
-    import trimesh
-
-    if kind == "box":
-        return trimesh.creation.box(extents=dims[:3])
-    if kind == "cylinder":
-        return trimesh.creation.cylinder(radius=dims[0], height=dims[1], sections=sections)
-    if kind == "cone":
-        cone = trimesh.creation.cone(radius=dims[0], height=dims[1], sections=sections)
-        cone.apply_translation([0.0, 0.0, -dims[1] / 2.0])
-        return cone
-    if kind == "sphere":
-        return trimesh.creation.icosphere(subdivisions=3, radius=dims[0])
-    if kind == "tube":
-        return trimesh.creation.annulus(r_min=dims[1], r_max=dims[0], height=dims[2], sections=sections)
-    if kind in ("rectangle", "plane"):
-        sx, sy = (dims[0], dims[1]) if kind == "rectangle" else (plane_size, plane_size)
-        v = np.array([[-sx / 2, -sy / 2, 0], [sx / 2, -sy / 2, 0], [sx / 2, sy / 2, 0], [-sx / 2, sy / 2, 0]])
-        f = np.array([[0, 1, 2], [0, 2, 3], [0, 2, 1], [0, 3, 2]])  # both sides
-        if not two_sided:
-            f = f[:2]
-        return trimesh.Trimesh(v, f, process=False)
-    if kind == "mesh":
-        return trimesh.Trimesh(mesh_data.vertices * dims[:3], mesh_data.faces, process=False)
-    raise ValueError(f"unknown shape kind {kind}")
 
 
 jax.tree_util.register_dataclass(

@@ -18,11 +18,13 @@ import enum
 import functools
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from mbcal._jax import jax, jnp
+from mbcal.cache import Hasher, exported
+from mbcal.errors import SolverError
 
 Array = Any
 
@@ -63,12 +65,24 @@ _MESSAGES = {
 }
 
 
-class Loss(enum.Enum):
-    """Robust loss ρ(s) applied to each squared whitened residual s = r²."""
+class Loss(enum.StrEnum):
+    """Robust loss ρ(s) applied to each squared whitened residual s = r².
+
+    A ``str`` enum: ``SolverConfig(loss="huber")`` and ``SolverConfig(loss=Loss.HUBER)`` are the same.
+    """
 
     LINEAR = "linear"
     HUBER = "huber"
     CAUCHY = "cauchy"
+
+    @property
+    def default_scale(self) -> float:
+        """The scale c (in σ) that gives 95 % efficiency on Gaussian residuals (Huber 1.345,
+        Cauchy 2.385; Holland & Welsch 1977), the default of :class:`SolverConfig` and the CLI."""
+        return _DEFAULT_SCALES[self]
+
+
+_DEFAULT_SCALES = {Loss.LINEAR: 1.0, Loss.HUBER: 1.345, Loss.CAUCHY: 2.385}
 
 
 @dataclass(frozen=True)
@@ -95,11 +109,11 @@ class SolverConfig:
         Initial λ, relative to diag(JᵀJ).
     lambda_max : float
         λ beyond which a restart is declared stalled.
-    loss : str
+    loss : Loss or str
         ``linear`` (least squares), ``huber`` or ``cauchy``.
-    loss_scale : float
+    loss_scale : float, optional
         Scale c of the robust loss, in units of the whitened residual (σ): residuals below c
-        count quadratically.
+        count quadratically.  Default: :attr:`Loss.default_scale` (Huber 1.345, Cauchy 2.385).
     """
 
     max_iterations: int = 100
@@ -108,23 +122,25 @@ class SolverConfig:
     gtol: float = 1e-10
     lambda_init: float = 1e-3
     lambda_max: float = 1e16
-    loss: str = "linear"
-    loss_scale: float = 1.0
+    loss: Loss = Loss.LINEAR
+    loss_scale: float | None = None
 
     def __post_init__(self) -> None:
-        from mbcal.errors import SolverError
-
         try:
-            Loss(self.loss)
+            loss = Loss(self.loss)
         except ValueError:
             raise SolverError(f"unknown loss '{self.loss}' (linear, huber or cauchy)") from None
-        if not self.loss_scale > 0:
-            raise SolverError(f"loss_scale must be positive, got {self.loss_scale}")
+        # Frozen: normalise the fields once, so equal settings hash equal (the compiled-code cache).
+        object.__setattr__(self, "loss", loss)
+        scale = loss.default_scale if self.loss_scale is None else self.loss_scale
+        object.__setattr__(self, "loss_scale", scale)
+        if not scale > 0:
+            raise SolverError(f"loss_scale must be positive, got {scale}")
         if self.max_iterations < 1:
             raise SolverError("max_iterations must be at least 1")
 
 
-def robust(loss: str, scale: float, s: Array) -> tuple[Array, Array]:
+def robust(loss: Loss | str, scale: float, s: Array) -> tuple[Array, Array]:
     """ρ(s) and ρ'(s) for squared residuals ``s`` (ρ(s) = s for least squares)."""
     c2 = scale * scale
     if loss == "huber":
@@ -137,7 +153,7 @@ def robust(loss: str, scale: float, s: Array) -> tuple[Array, Array]:
     return s, jnp.ones_like(s)
 
 
-def robust_change(loss: str, scale: float, r: Array, r_new: Array) -> Array:
+def robust_change(loss: Loss | str, scale: float, r: Array, r_new: Array) -> Array:
     """Σ [ρ(r_new²) − ρ(r²)] computed term by term without cancellation.
 
     Taking the difference of the two sums loses every digit below eps·S, which stops the
@@ -218,22 +234,40 @@ def _solve_spd(M: Array, b: Array) -> Array:
     """Solve M x = b for a symmetric positive definite M (NaN when it is not)."""
     n = M.shape[0]
     if n > SMALL_SYSTEM:
-        L = jnp.linalg.cholesky(M)
-        y = jax.scipy.linalg.solve_triangular(L, b, lower=True)
-        return jax.scipy.linalg.solve_triangular(L.T, y, lower=False)
-    L = [[None] * n for _ in range(n)]
+        chol = jnp.linalg.cholesky(M)
+        half = jax.scipy.linalg.solve_triangular(chol, b, lower=True)
+        return jax.scipy.linalg.solve_triangular(chol.T, half, lower=False)
+    # Scalar slots start as None placeholders; each is filled (with an Array) before it is read.
+    L: list[list[Any]] = [[None] * n for _ in range(n)]
     for j in range(n):
         d = M[j, j] - sum((L[j][k] * L[j][k] for k in range(j)), start=0.0)
         L[j][j] = jnp.sqrt(d)  # NaN when M is not positive definite: the step is rejected
         for i in range(j + 1, n):
             L[i][j] = (M[i, j] - sum((L[i][k] * L[j][k] for k in range(j)), start=0.0)) / L[j][j]
-    y = [None] * n
+    y: list[Any] = [None] * n
     for i in range(n):
         y[i] = (b[i] - sum((L[i][k] * y[k] for k in range(i)), start=0.0)) / L[i][i]
-    x = [None] * n
+    x: list[Any] = [None] * n
     for i in reversed(range(n)):
         x[i] = (y[i] - sum((L[k][i] * x[k] for k in range(i + 1, n)), start=0.0)) / L[i][i]
     return jnp.stack(x)
+
+
+class _LMState(NamedTuple):
+    """The Marquardt loop's carry (a pytree: JAX traces its fields)."""
+
+    x: Array  # (n,) the accepted point
+    r: Array  # (m,) its residual
+    rw: Array  # (m,) the residual weighted by the robust loss
+    Jw: Array  # (m, n) the weighted Jacobian
+    cost: Array  # Σρ(r²) at x
+    x_try: Array  # (n,) the trial point the next iteration evaluates
+    predicted: Array  # the decrease of S the linear model predicts for the trial step
+    lam: Array  # λ
+    nu: Array  # λ's growth factor after a rejected step (Nielsen)
+    D: Array  # (n,) running maximum of diag(JᵀJ): Marquardt's scaling
+    it: Array  # iterations done
+    status: Array  # 0 while running, else a Status code
 
 
 def _lm_single(fun: Callable, config: SolverConfig, x0: Array, args: tuple, m: int) -> tuple:
@@ -243,6 +277,7 @@ def _lm_single(fun: Callable, config: SolverConfig, x0: Array, args: tuple, m: i
     iteration proposed (the first iteration evaluates x0), so the model is traced only once.
     """
     loss, scale = config.loss, config.loss_scale
+    assert scale is not None  # SolverConfig.__post_init__ replaces None with the loss's default
     n = x0.shape[0]
 
     def evaluate(x):
@@ -264,26 +299,25 @@ def _lm_single(fun: Callable, config: SolverConfig, x0: Array, args: tuple, m: i
         return jnp.max(cosine, initial=0.0) <= config.gtol
 
     zeros_m, zeros_mn = jnp.zeros(m), jnp.zeros((m, n))
-    # state: x, r, rw, Jw, cost, x_try, predicted, lam, nu, D, it, status
-    state0 = (
-        x0,
-        zeros_m,
-        zeros_m,
-        zeros_mn,
-        jnp.asarray(jnp.inf),
-        x0,
-        jnp.asarray(0.0),
-        jnp.asarray(config.lambda_init),
-        jnp.asarray(2.0),
-        jnp.zeros(n),
-        jnp.int32(0),
-        jnp.int32(0),
+    state0 = _LMState(
+        x=x0,
+        r=zeros_m,
+        rw=zeros_m,
+        Jw=zeros_mn,
+        cost=jnp.asarray(jnp.inf),
+        x_try=x0,
+        predicted=jnp.asarray(0.0),
+        lam=jnp.asarray(config.lambda_init),
+        nu=jnp.asarray(2.0),
+        D=jnp.zeros(n),
+        it=jnp.int32(0),
+        status=jnp.int32(0),
     )
 
-    def cond(state):
-        return state[-1] == 0
+    def cond(state: _LMState):
+        return state.status == 0
 
-    def body(state):
+    def body(state: _LMState) -> _LMState:
         x, r, rw, Jw, cost, x_try, predicted, lam, nu, D, it, status = state
         first = it == 0
         J_new, r_new = evaluate(x_try)
@@ -325,12 +359,12 @@ def _lm_single(fun: Callable, config: SolverConfig, x0: Array, args: tuple, m: i
         status = jnp.where((status == 0) & (it >= config.max_iterations), Status.MAX_ITERATIONS, status)
         # A step that cannot be computed is a rejection: try again with a larger λ.
         x_try = jnp.where(finite_step, x + delta, x)
-        return (x, r, rw, Jw, cost, x_try, predicted, lam, nu, D, it, status.astype(jnp.int32))
+        return _LMState(x, r, rw, Jw, cost, x_try, predicted, lam, nu, D, it, status.astype(jnp.int32))
 
-    x, r, _, _, _, _, _, _, _, _, it, status = jax.lax.while_loop(cond, body, state0)
+    final = jax.lax.while_loop(cond, body, state0)
     # The running cost accumulates exact changes; report the cost of the final residual itself.
-    cost = jnp.where(status == Status.NON_FINITE, jnp.inf, weighted(r, jnp.zeros((m, 1)))[0])
-    return x, cost, status, it
+    cost = jnp.where(final.status == Status.NON_FINITE, jnp.inf, weighted(final.r, jnp.zeros((m, 1)))[0])
+    return final.x, cost, final.status, final.it
 
 
 @functools.lru_cache(maxsize=64)
@@ -381,8 +415,6 @@ def least_squares(
     args = tuple(jnp.asarray(a) for a in args)
     program = _compiled(fun, config, size)
     if cache_key is not None:
-        from mbcal.cache import Hasher, exported
-
         key = Hasher().add(cache_key, repr(config), size, x0.shape, [(a.shape, str(a.dtype)) for a in args])
         program = exported(key.hexdigest(), program, jnp.asarray(x0), args)
     x, cost, status, it = program(jnp.asarray(x0), args)

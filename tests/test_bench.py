@@ -6,6 +6,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -13,6 +15,7 @@ def run(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, *args], cwd=ROOT, capture_output=True, text=True, timeout=900)
 
 
+@pytest.mark.slow
 def test_experiments_script_reports_before_after_and_the_seed(tmp_path):
     out = tmp_path / "experiments.md"
     proc = run(
@@ -25,6 +28,7 @@ def test_experiments_script_reports_before_after_and_the_seed(tmp_path):
     assert "no structural model error" in text
 
 
+@pytest.mark.slow
 def test_benchmark_script_measures_scaling_and_writes_a_plot(tmp_path):
     out = tmp_path / "performance.md"
     proc = run("bench/run.py", "--only", "scaling", "--quick", "--repeats", "1", "--out", str(out))

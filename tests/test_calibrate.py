@@ -37,6 +37,7 @@ def assert_within_3_sigma(result, truth):
         assert abs(err) <= 3 * result.std[name], f"{name}: error {err:.3g}, σ {result.std[name]:.3g}"
 
 
+@pytest.mark.slow
 def test_room_pose_is_recovered_from_24_stereo_points(room_result):
     assert room_result.ok
     assert room_result.observability.rank == 6
@@ -50,6 +51,7 @@ def test_stereo_depth_is_the_least_certain_direction(room_result):
     assert lever and all(p.parallel > p.perpendicular for p in lever)
 
 
+@pytest.mark.slow
 def test_arm_joint_offsets_are_recovered_over_ten_attitudes(arm):
     plan = mbcal.read_measurements(MEASUREMENTS / "arm_plan.json", arm)
     rng = np.random.default_rng(7)
@@ -60,6 +62,7 @@ def test_arm_joint_offsets_are_recovered_over_ten_attitudes(arm):
     assert_within_3_sigma(result, truth)
 
 
+@pytest.mark.slow
 def test_lever_angle_is_recovered_from_its_points(room):
     plan = mbcal.measurements_from_records(
         [
@@ -108,6 +111,7 @@ def test_camera_intrinsics_are_recovered_from_a_target_in_known_poses():
     assert_within_3_sigma(result, truth)
 
 
+@pytest.mark.slow
 def test_an_unobservable_combination_is_named_in_the_users_terms(room, room_data):
     result = mbcal.calibrate(room, room_data, ["room.x", "robot.x", "room.y", "room.z"], restarts=4)
     obs = result.observability
@@ -126,6 +130,7 @@ def test_an_unobservable_combination_is_named_in_the_users_terms(room, room_data
     assert "cannot be determined" in result.summary()
 
 
+@pytest.mark.slow
 def test_a_parameter_no_measurement_depends_on_is_reported_alone(room, room_data):
     no_fan = room_data.subset(["fan" not in m.refs["point"] for m in room_data])
     result = mbcal.calibrate(room, no_fan, ["room.x", "fan.angle"], restarts=2)
@@ -135,6 +140,7 @@ def test_a_parameter_no_measurement_depends_on_is_reported_alone(room, room_data
     assert math.isinf(result.std["fan.angle"]) and math.isfinite(result.std["room.x"])
 
 
+@pytest.mark.slow
 def test_suggestions_rank_measurements_that_raise_the_rank(room):
     plan = mbcal.measurements_from_records(
         [{"kind": "image_point", "camera": "eyes.left", "point": p, "sigma": 1} for p in ("lever.hub", "lever.tip")],
@@ -147,6 +153,7 @@ def test_suggestions_rank_measurements_that_raise_the_rank(room):
     assert "image_point" in obs.suggestions[0].text
 
 
+@pytest.mark.slow
 def test_priors_determine_what_the_measurements_cannot(room, room_data):
     text = (MODELS / "teleexistence.mdl").read_text().replace("param robot.x   = 0 m", "param robot.x = 0 m sigma 5 mm")
     model = mbcal.load_model_text(text, str(MODELS / "prior_copy.mdl"))
@@ -169,6 +176,7 @@ def test_autodiff_jacobian_matches_finite_differences(arm):
     np.testing.assert_allclose(J, fd, rtol=1e-5, atol=1e-4)
 
 
+@pytest.mark.slow
 def test_calibration_is_reproducible_for_a_seed(room, room_data):
     a = mbcal.calibrate(room, room_data, ["room.*"], restarts=6, seed=42)
     b = mbcal.calibrate(room, room_data, ["room.*"], restarts=6, seed=42)
@@ -201,6 +209,7 @@ def test_calibrated_model_is_written_without_touching_the_input(room, room_resul
     assert "param room.yaw" in out.read_text() and "override" not in out.read_text()
 
 
+@pytest.mark.slow
 def test_values_declared_by_an_index_range_are_written_as_overrides(arm, tmp_path):
     plan = mbcal.read_measurements(MEASUREMENTS / "arm_plan.json", arm)
     data = mbcal.simulate(arm, plan, {"arm.offset3": 0.04}, seed=2)
@@ -218,13 +227,14 @@ def test_nothing_to_estimate_is_a_clear_error(room, room_data):
         mbcal.calibrate(room, room_data, [])
 
 
+@pytest.mark.slow
 def test_range_measurements_recover_the_distance_to_the_wall(room):
     # Rays of the depth sensor that hit the wall only: they see the room's y position and tilt.
     plan = mbcal.measurements_from_records(
         [{"kind": "range", "sensor": "depth", "ray": k, "sigma": 0.002} for k in range(192)], room
     )
     scene = mbcal.modeler(room, room.nominal)
-    from mbcal.raycast import scene_cast_rays
+    from mbcal.geometry.raycast import scene_cast_rays
 
     origins, directions = scene.range_rays("depth")
     on_wall = np.asarray(scene_cast_rays(scene, origins, directions, shapes=["room.wall"]))
@@ -240,12 +250,13 @@ def test_range_measurements_recover_the_distance_to_the_wall(room):
     assert result.std["room.y"] < 0.001
 
 
+@pytest.mark.slow
 def test_points_on_surfaces_recover_the_room_pose(room):
     # A point cloud in the depth sensor's frame (from its rays at the true pose) fitted to the
     # room's surfaces: the seed's "automatic calibration" with a range sensor.
     truth = dict(ROOM_TRUTH)
     scene = mbcal.modeler(room, mbcal.parameter_vector(room, truth))
-    from mbcal.raycast import scene_cast_rays
+    from mbcal.geometry.raycast import scene_cast_rays
 
     origins, directions = scene.range_rays("depth")
     t = np.asarray(scene_cast_rays(scene, origins, directions))

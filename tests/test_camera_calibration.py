@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import mbcal
-from mbcal.calibration import (
+from mbcal.workflows.cameras import (
     calibrate_cameras,
     homography,
     intrinsics_from_homographies,
@@ -19,7 +19,7 @@ from mbcal.calibration import (
     pose_from_homography,
     synthesize_images,
 )
-from mbcal.detect import detect_images
+from mbcal.workflows.detect import detect_images
 
 from conftest import MODELS, shared_data
 
@@ -75,6 +75,7 @@ def zhang_corners(model) -> mbcal.MeasurementSet:
 POINTS_FILE = 'points("{folder}/Model.txt", scale = 1 inch)'
 
 
+@pytest.mark.slow
 def test_zhangs_data_reproduces_his_published_calibration_with_skew():
     model = zhang_model(POINTS_FILE, skew=True)
     cc = calibrate_cameras(model, zhang_corners(model))
@@ -90,6 +91,7 @@ def test_zhangs_data_reproduces_his_published_calibration_with_skew():
     np.testing.assert_allclose(t1, [-3.84019, 3.65164, 12.791], rtol=1e-3)
 
 
+@pytest.mark.slow
 def test_zhangs_data_matches_opencv_for_the_same_camera_model():
     cv2 = pytest.importorskip("cv2")
     folder = shared_data("zhang")
@@ -108,6 +110,7 @@ def test_zhangs_data_matches_opencv_for_the_same_camera_model():
     assert got["k1"] == pytest.approx(dist.ravel()[0], rel=1e-3)
 
 
+@pytest.mark.slow
 def test_corners_detected_in_zhangs_images_calibrate_the_camera(tmp_path):
     pytest.importorskip("cv2")
     folder = shared_data("zhang")
@@ -175,7 +178,7 @@ def test_closed_form_recovers_an_exact_camera():
     Hs = []
     for _ in range(4):
         a, b, c = rng.uniform(-0.4, 0.4, 3)
-        from mbcal.geometry import rpy
+        from mbcal.geometry.transforms import rpy
 
         R = rpy(np, a, b, c)[:3, :3]
         t = np.array([rng.uniform(-0.1, 0.1), rng.uniform(-0.1, 0.1), rng.uniform(0.4, 0.7)])
@@ -190,6 +193,7 @@ def test_closed_form_recovers_an_exact_camera():
     np.testing.assert_allclose(intrinsics_from_homographies(Hs, skew=True), K, rtol=1e-7, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_a_camera_with_full_distortion_is_recovered_from_synthetic_chessboard_images(tmp_path):
     pytest.importorskip("cv2")
     model = mbcal.load_model(MODELS / "camera_calibration.mdl")
@@ -215,6 +219,7 @@ def test_a_camera_with_full_distortion_is_recovered_from_synthetic_chessboard_im
         assert abs(est - value) <= 3 * std + 1e-12, (name, est, value, std)
 
 
+@pytest.mark.slow
 def test_a_stereo_rig_is_recovered_from_synthetic_images_of_both_cameras(tmp_path):
     pytest.importorskip("cv2")
     model = mbcal.load_model(MODELS / "stereo_calibration.mdl")
@@ -241,7 +246,7 @@ def test_a_stereo_rig_is_recovered_from_synthetic_images_of_both_cameras(tmp_pat
     right = synthesize_images(model, views, tmp_path / "right", truth=truth, camera="right", seed=1)
     data_left, _ = detect_images(model, list(left.values()), camera="left")
     data_right, _ = detect_images(model, list(right.values()), camera="right")
-    from mbcal.measurements.files import merge_measurements
+    from mbcal.measurements.io import merge_measurements
 
     data = merge_measurements([data_left, data_right])
     cc = calibrate_cameras(model, data)

@@ -47,6 +47,7 @@ def test_simulate_is_reproducible_for_a_seed(room_csv, tmp_path):
     assert again.read_bytes() == room_csv.read_bytes()
 
 
+@pytest.mark.slow
 def test_solve_reports_writes_json_model_overlays_and_plot(room_csv, tmp_path):
     report = tmp_path / "report.json"
     model_out = tmp_path / "calibrated.mdl"
@@ -94,6 +95,7 @@ def test_solve_reports_writes_json_model_overlays_and_plot(room_csv, tmp_path):
         assert img.format == "PNG" and img.size[0] > 500
 
 
+@pytest.mark.slow
 def test_solve_with_json_to_stdout_and_quiet_prints_only_json(room_csv):
     result = run("solve", ROOM, room_csv, "--estimate", "room.x", "room.y", "--restarts", "2", "--json", "-", "--quiet")
     assert result.returncode == 0, result.stderr
@@ -102,6 +104,7 @@ def test_solve_with_json_to_stdout_and_quiet_prints_only_json(room_csv):
     assert set(data["parameters"]) == {"room.x", "room.y"}
 
 
+@pytest.mark.slow
 def test_solve_exits_1_when_something_is_not_observable(room_csv, tmp_path):
     report = tmp_path / "r.json"
     result = run("solve", ROOM, room_csv, "--estimate", "room.x", "robot.x", "--restarts", "2", "--json", report)
@@ -142,6 +145,7 @@ def test_outputs_may_not_overwrite_inputs(room_csv):
     assert room_csv.read_bytes() == before
 
 
+@pytest.mark.slow
 def test_observe_names_what_is_missing_and_what_would_help(tmp_path):
     plan = tmp_path / "few.csv"
     plan.write_text("kind,camera,point,sigma\nimage_point,eyes.left,lever.hub,1\nimage_point,eyes.left,lever.tip,1\n")
@@ -157,6 +161,7 @@ def test_observe_names_what_is_missing_and_what_would_help(tmp_path):
     assert full.returncode == 0 and "observable: rank 6 of 6" in full.stdout
 
 
+@pytest.mark.slow
 def test_render_writes_a_png_of_the_cameras_size(tmp_path):
     out = tmp_path / "left.png"
     result = run("render", ROOM, "--camera", "eyes.left", "--set", "lever.angle=40deg", "--points", "-o", out)
@@ -167,6 +172,7 @@ def test_render_writes_a_png_of_the_cameras_size(tmp_path):
     assert pixels.std() > 10  # something was drawn
 
 
+@pytest.mark.slow
 def test_render_wireframe_over_a_photo(tmp_path):
     photo = tmp_path / "photo.png"
     Image.fromarray(np.full((453, 669, 3), 90, dtype=np.uint8)).save(photo)
@@ -182,6 +188,7 @@ def test_render_wireframe_over_a_photo(tmp_path):
     assert result.returncode == 2 and "is 10×10 pixels but camera" in result.stderr
 
 
+@pytest.mark.slow
 def test_demo_runs_the_seeds_room_calibration_end_to_end(tmp_path):
     result = run("demo", "-o", tmp_path / "demo", "--restarts", "8")
     assert result.returncode == 0, result.stderr

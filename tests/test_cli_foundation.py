@@ -75,3 +75,16 @@ def test_help_lists_commands_with_examples():
         assert command in result.stdout
         sub = run(command, "--help")
         assert "example:" in sub.stdout
+
+
+def test_check_and_help_do_not_import_jax():
+    # `mbcal check` is the editor's quick loop: it must not pay for JAX (nor the solver, nor pyrender).
+    code = (
+        "import sys\n"
+        "from mbcal.cli import main\n"
+        f"assert main(['check', '-q', {str(MODELS / 'teleexistence.mdl')!r}, {str(MODELS / 'arm7.mdl')!r}]) == 0\n"
+        "heavy = sorted(m for m in ('jax', 'pyrender', 'mbcal.solver', 'mbcal.problem') if m in sys.modules)\n"
+        "assert not heavy, heavy\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr

@@ -78,6 +78,7 @@ PY_DOCS = [p for p in DOCS if blocks(p, "python")]
 
 
 @pytest.mark.parametrize("doc", PY_DOCS, ids=[p.name for p in PY_DOCS])
+@pytest.mark.slow
 def test_python_examples_run(doc, tmp_path):
     """A page's ```python blocks run in order, in one process, from the repository root."""
     import subprocess
@@ -90,6 +91,7 @@ def test_python_examples_run(doc, tmp_path):
     assert result.returncode == 0, result.stderr[-4000:]
 
 
+@pytest.mark.slow
 def test_cli_session_in_the_guide_runs(tmp_path):
     """docs/cli.md's shell session runs as written (in a scratch copy of the repository's data)."""
     import os

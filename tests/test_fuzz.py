@@ -261,6 +261,7 @@ MODEL_TEXT = st.lists(statements(), min_size=1, max_size=8).map(lambda items: "\
 
 @fuzz_settings(6000)
 @given(text=MODEL_TEXT)
+@pytest.mark.slow
 def test_generated_models_load_or_fail_with_a_located_error(text, workspace):
     check(text, workspace / "generated.mdl")
 
@@ -380,6 +381,7 @@ def mutated(draw):
 
 @fuzz_settings(4000)
 @given(case=mutated())
+@pytest.mark.slow
 def test_mutated_bundled_models_load_or_fail_with_a_located_error(case, workspace):
     name, text = case
     # Beside the real model files, so their includes and meshes resolve.

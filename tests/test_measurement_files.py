@@ -10,7 +10,7 @@ import pytest
 
 from mbcal.errors import MeasurementFileError
 from mbcal.language import load_model
-from mbcal.measurements.files import read_measurements, write_measurements
+from mbcal.measurements.io import read_measurements, write_measurements
 
 from conftest import MEASUREMENTS, MODELS
 

@@ -1,4 +1,5 @@
-"""Ray casting and surface distances (mbcal.raycast) against trimesh, analytic values and finite differences."""
+"""Ray casting and surface distances (mbcal.geometry.raycast) against trimesh, analytic values and
+finite differences."""
 
 from __future__ import annotations
 
@@ -11,10 +12,7 @@ import trimesh
 from trimesh.ray.ray_triangle import RayMeshIntersector
 
 from mbcal._jax import jax, jnp
-from mbcal.language import load_model_text
-from mbcal.language.model import MeshData
-from mbcal.modeling import modeler
-from mbcal.raycast import (
+from mbcal.geometry.raycast import (
     RAY_KINDS,
     cast_rays,
     distance_to_shapes,
@@ -23,6 +21,9 @@ from mbcal.raycast import (
     scene_distance,
     surface_distance,
 )
+from mbcal.language import load_model_text
+from mbcal.language.model import MeshData
+from mbcal.modeling import modeler
 from mbcal.scene import shape_mesh
 
 SECTIONS = 720  # tessellation of the round reference meshes
@@ -570,6 +571,7 @@ def test_nearest_surface_wins_a_ball_in_front_of_a_wall(wall_and_ball):
     np.testing.assert_allclose(t_wall[0], 2.0 / d[0, 1], rtol=1e-12)
 
 
+@pytest.mark.slow
 def test_range_to_a_wall_follows_the_wall_parameter_one_for_one(wall_and_ball):
     model, _ = wall_and_ball
     i = model.param_index("wall.y")
@@ -617,6 +619,7 @@ def test_distance_to_shapes_is_the_nearest_surface(wall_and_ball):
     np.testing.assert_allclose(d, ref, atol=3e-3)
 
 
+@pytest.mark.slow
 def test_batched_configurations_match_vmap_and_jit(wall_and_ball):
     model, _ = wall_and_ball
     xs = np.stack([model.nominal + [0.1 * k, -0.05 * k] for k in range(3)])
@@ -644,6 +647,7 @@ def test_shape_count_mismatch_and_empty_shape_lists():
     assert d.shape == (4,) and np.all(np.isinf(np.asarray(d)))
 
 
+@pytest.mark.slow
 def test_jitted_derivative_of_the_nearest_of_several_shapes_is_finite():
     # Regression: jnp.min's derivative compares inputs with the result for equality; inside jit
     # XLA rounding made that fail for some points, giving 0/0.  Selection by argmin does not.

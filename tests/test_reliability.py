@@ -32,6 +32,7 @@ def misclicked(data, fraction: float, seed: int):
     return data.with_values(values), {data.measurements[i].id for i in bad}
 
 
+@pytest.mark.slow
 def test_robust_losses_recover_the_pose_despite_20_percent_misclicks(room):
     plan = mbcal.read_measurements(MEASUREMENTS / "room_plan.csv", room)
     clean = mbcal.simulate(room, plan, ROOM_TRUTH, seed=21)
@@ -53,6 +54,7 @@ def test_robust_losses_recover_the_pose_despite_20_percent_misclicks(room):
     assert worst_plain > 3.0  # without a robust loss the pose is off by more than 3σ
 
 
+@pytest.mark.slow
 def test_too_few_measurements_are_reported_as_underdetermined(room):
     plan = mbcal.measurements_from_records(
         [{"kind": "image_point", "camera": "eyes.left", "point": p, "sigma": 1} for p in ("lever.tip", "lever.hub")],
@@ -161,6 +163,7 @@ def room_csv(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_the_same_seed_gives_bit_identical_reports(room_csv, tmp_path):
     reports = []
     for k in range(2):
@@ -257,6 +260,7 @@ def test_includes_and_meshes_resolve_relative_to_the_model_file_with_absolute_an
     assert len(model.files) == 3
 
 
+@pytest.mark.slow
 def test_a_file_of_100000_measurements_reads_in_bounded_time_and_memory(room, tmp_path):
     points = [p.name for p in room.points]
     rows = ["id,kind,camera,point,u,v,sigma"]

@@ -7,7 +7,7 @@ import pytest
 
 from mbcal.language import load_model, load_model_text
 from mbcal.modeling import modeler
-from mbcal.render import render_view, wireframe_layer
+from mbcal.render.views import render_view, wireframe_layer
 
 from conftest import MODELS
 
@@ -35,6 +35,7 @@ def test_rendered_point_lies_within_one_pixel_of_its_projection():
     assert checked >= 8  # points on free surfaces; corners and pipe ends are half inside their solid
 
 
+@pytest.mark.slow
 def test_rendered_depth_matches_the_range_measurement_model():
     # A camera and a range sensor at the same pose, the sensor's rays through chosen pixels.
     pixels = [(50, 40), (320, 240), (600, 420), (100, 400), (520, 90)]
@@ -56,7 +57,7 @@ def test_rendered_depth_matches_the_range_measurement_model():
     model = load_model_text(text)
     scene = modeler(model, model.nominal)
     view = render_view(scene, "cam")
-    from mbcal.raycast import scene_cast_rays
+    from mbcal.geometry.raycast import scene_cast_rays
 
     origins, dirs = scene.range_rays("probe")
     ranges = np.asarray(scene_cast_rays(scene, origins, dirs))
@@ -79,7 +80,7 @@ def test_hidden_edges_are_not_drawn():
     scene = modeler(model, model.nominal)
     view = render_view(scene, "cam")
     layer = wireframe_layer(scene, "cam", view, (255, 0, 0))
-    from mbcal.render import wireframe_segments
+    from mbcal.render.views import wireframe_segments
 
     segments = wireframe_segments(scene, "cam")
     behind = np.all(np.abs(segments[:, :, 1] - 3.0) <= 0.15 + 1e-9, axis=1) & np.all(

@@ -13,8 +13,10 @@ import yourdfpy
 
 import mbcal
 from mbcal.errors import MdlError
-from mbcal.fileio import OutputError
-from mbcal.urdf import load_urdf, resolve_mesh, urdf_names, urdf_to_mdl, write_urdf
+from mbcal.export.urdf import write_urdf
+from mbcal.language import load_urdf
+from mbcal.language.urdf import resolve_mesh, urdf_names, urdf_to_mdl
+from mbcal.outputs import OutputError
 
 from conftest import ROOT
 
@@ -174,6 +176,7 @@ def test_export_leaves_joints_without_estimates_untouched_and_never_overwrites_i
 # ---- a calibration through the library ------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_offsets_and_origin_errors_are_recovered_from_3d_points(arm, tmp_path):
     rng = np.random.default_rng(21)
     configurations = {f"c{k}": {f"{j}.q": float(rng.uniform(-1.5, 1.5)) for j in JOINTS} for k in range(6)}

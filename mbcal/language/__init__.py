@@ -1,52 +1,23 @@
-"""The model description language: parse (Lark → syntax tree), check (→ Model), IR."""
+"""The model description language: text → syntax tree → checked :class:`Model`.
 
-from __future__ import annotations
+Modules, in the order the text flows through them (each imports only modules further down; the
+import-linter contract in ``pyproject.toml`` keeps it so):
 
-import os
-from pathlib import Path
+* ``load`` ties it together; ``urdf`` turns a URDF robot into model text;
+* ``check`` runs the checker's passes: ``expand`` (templates, includes, names and ``scope``\\ s)
+  and ``declarations`` (with ``shapes``, ``sensors`` and ``targets``), whose expressions
+  ``expressions`` compiles;
+* ``ir`` and ``soa`` evaluate expression graphs (``graph``) with arrays and in
+  structure-of-arrays form (``soa_math``); ``functions`` is the catalogue of the language's
+  functions that the checker and both evaluators share; ``arguments`` matches calls to
+  signatures;
+* ``model`` is the checked model (``summary`` prints it), ``meshes`` reads mesh files, and
+  ``parse`` turns text into the syntax tree of ``ast``.
 
-from mbcal.errors import MdlError, SourceSpan
-from mbcal.language.check import check
+This file only re-exports.
+"""
+
+from mbcal.language.load import load_model, load_model_text, load_urdf
 from mbcal.language.model import Model
-from mbcal.language.parse import deep_recursion, parse_file, parse_text
 
-__all__ = ["load_model", "load_model_text", "Model"]
-
-
-def load_model(path: str | os.PathLike[str]) -> Model:
-    """Read, parse and check a model file (``.mdl``, or ``.urdf`` for robot descriptions).
-
-    Raises
-    ------
-    MdlError
-        Any error in the model (or a file it includes), with its location.
-    """
-    path = Path(path)
-    if path.suffix.lower() == ".urdf":
-        from mbcal.urdf import load_urdf
-
-        return load_urdf(path)
-    try:
-        statements = parse_file(path)
-        with deep_recursion():
-            return check(statements, str(path))
-    except RecursionError:
-        raise MdlError(
-            "the model's definitions nest too deeply (lets or templates in long chains)", SourceSpan(str(path), 1, 1)
-        ) from None
-
-
-def load_model_text(text: str, path: str = "<string>") -> Model:
-    """Parse and check model text; includes and meshes resolve relative to ``path``."""
-    from mbcal.language.parse import _resolve_includes
-
-    try:
-        statements = parse_text(text, path)
-        base = Path(path).resolve() if path != "<string>" else Path.cwd() / "<string>"
-        statements = _resolve_includes(statements, base, (base,))
-        with deep_recursion():
-            return check(statements, path)
-    except RecursionError:
-        raise MdlError(
-            "the model's definitions nest too deeply (lets or templates in long chains)", SourceSpan(path, 1, 1)
-        ) from None
+__all__ = ["load_model", "load_model_text", "load_urdf", "Model"]

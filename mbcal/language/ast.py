@@ -213,8 +213,8 @@ class Joint(Statement):
 
 
 @dataclass(frozen=True)
-class Camera(Statement):
-    """``camera name(width = ..., height = ..., f = ..., ...) at pose``."""
+class Sensor(Statement):
+    """A sensor statement: ``KEYWORD name(arguments) at pose`` (see its subclasses)."""
 
     name: str = ""
     args: tuple[Expr, ...] = ()
@@ -223,13 +223,13 @@ class Camera(Statement):
 
 
 @dataclass(frozen=True)
-class RangeSensor(Statement):
-    """``range name(direction = ... | directions = [...] | fov = ..., rays = ...) at pose``."""
+class Camera(Sensor):
+    """``camera name(width = ..., height = ..., f = ..., ...) at pose``."""
 
-    name: str = ""
-    args: tuple[Expr, ...] = ()
-    kwargs: tuple[Keyword, ...] = ()
-    pose: Expr | None = None
+
+@dataclass(frozen=True)
+class RangeSensor(Sensor):
+    """``range name(direction = ... | directions = [...] | fov = ..., rays = ...) at pose``."""
 
 
 @dataclass(frozen=True)

@@ -13,8 +13,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mbcal.errors import ParameterError, SourceSpan, UnknownNameError, suggest
-from mbcal.language.ir import Node
-from mbcal.units import Dim, describe, to_display
+from mbcal.language.graph import Node
+from mbcal.language.summary import model_summary
+from mbcal.units import ANGLE, LENGTH, Dim, describe, to_display
 
 __all__ = [
     "ParamInfo",
@@ -27,20 +28,7 @@ __all__ = [
     "MeshData",
     "TargetInfo",
     "Model",
-    "SHAPE_KINDS",
 ]
-
-# Shape kind → names of its dimensions, in the order of ShapeInfo.dims.
-SHAPE_KINDS: dict[str, tuple[str, ...]] = {
-    "box": ("sx", "sy", "sz"),
-    "cylinder": ("radius", "length"),
-    "cone": ("radius", "length"),
-    "sphere": ("radius",),
-    "tube": ("outer", "inner", "length"),
-    "rectangle": ("sx", "sy"),
-    "plane": (),
-    "mesh": ("sx", "sy", "sz"),  # scale factors
-}
 
 
 @dataclass(frozen=True, eq=False)
@@ -81,9 +69,9 @@ class ParamInfo:
     @property
     def unit(self) -> str:
         """The unit values are shown in: ``m``, ``deg`` or empty."""
-        if self.dim == Dim(1, 0):
+        if self.dim == LENGTH:
             return "m"
-        if self.dim == Dim(0, 1):
+        if self.dim == ANGLE:
             return "deg"
         return ""
 
@@ -188,7 +176,7 @@ class ShapeInfo:
     name: str
     frame: int
     kind: str
-    dims: tuple[Node, ...]  # see SHAPE_KINDS
+    dims: tuple[Node, ...]  # the kind's dimensions (mbcal.geometry.shapes)
     pose: Node | None  # T_frame_shape
     mesh: MeshData | None = None
     span: SourceSpan | None = field(default=None, repr=False)
@@ -355,6 +343,4 @@ class Model:
 
     def summary(self) -> str:
         """A readable overview: parameters, frames, points, sensors, shapes."""
-        from mbcal.report import model_summary
-
         return model_summary(self)

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import os
 import sys
-from importlib import resources
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import lark
 from lark import Lark, Token, Transformer, v_args
@@ -15,8 +17,27 @@ from lark.exceptions import UnexpectedCharacters, UnexpectedEOF, UnexpectedInput
 
 from mbcal.errors import IncludeError, MbcalError, MdlSyntaxError, SourceSpan, remember_source
 from mbcal.language import ast
+from mbcal.resources import grammar_path
 
-__all__ = ["grammar_path", "grammar_text", "parse_text", "parse_file", "MAX_INCLUDE_DEPTH"]
+__all__ = [
+    "grammar_path",
+    "grammar_text",
+    "parse_text",
+    "parse_text_with_includes",
+    "parse_file",
+    "deep_recursion",
+    "RESERVED",
+    "MAX_INCLUDE_DEPTH",
+]
+
+# The language's keywords: no name may be one of them.
+RESERVED = frozenset(
+    {
+        "include", "param", "let", "template", "frame", "object", "link", "shape", "point",
+        "joint", "camera", "range", "target", "measure", "override", "at", "in", "sigma", "per",
+        "configuration", "pi", "world",
+    }
+)  # fmt: skip
 
 MAX_INCLUDE_DEPTH = 32
 # Guard against pathological inputs (deep parentheses make Lark's and our own recursion deep).
@@ -25,20 +46,6 @@ MAX_NESTING = 200
 # Deepest syntax tree accepted (operators, calls, frames): deeper input is refused with a located
 # error before any recursive walk can overflow Python's stack.
 MAX_TREE_DEPTH = 300
-
-
-def grammar_path() -> Path:
-    """Where ``mdl.lark`` is: inside the installed package, else in the source checkout."""
-    packaged = resources.files("mbcal") / "grammar" / "mdl.lark"
-    if packaged.is_file():
-        return Path(str(packaged))
-    checkout = Path(__file__).resolve().parents[2] / "grammar" / "mdl.lark"
-    if checkout.is_file():
-        return checkout
-    raise RuntimeError(
-        "mbcal's grammar file mdl.lark is missing: looked in the package (mbcal/grammar/) and in "
-        f"the source checkout ({checkout}); reinstall mbcal"
-    )
 
 
 def grammar_text() -> str:
@@ -99,7 +106,8 @@ def _syntax_error(err: UnexpectedInput, path: str, text: str) -> MdlSyntaxError:
     line = getattr(err, "line", None) or 1
     column = getattr(err, "column", None) or 1
     if isinstance(err, UnexpectedCharacters):
-        char = text[err.pos_in_stream] if err.pos_in_stream < len(text) else ""
+        pos = err.pos_in_stream
+        char = text[pos] if pos is not None and pos < len(text) else ""
         message = f"unexpected character {char!r}"
         if err.allowed:
             message += f"; expected {_expected(err.allowed)}"
@@ -145,7 +153,8 @@ class _ToAst(Transformer):
         return SourceSpan(self.path, meta.line, meta.column, meta.end_line, meta.end_column)
 
     def _tspan(self, token: Token) -> SourceSpan:
-        return SourceSpan(self.path, token.line, token.column, token.end_line, token.end_column)
+        # Tokens from the parser always carry their position; 1 keeps the type honest.
+        return SourceSpan(self.path, token.line or 1, token.column or 1, token.end_line, token.end_column)
 
     # -- expressions
     @v_args(meta=True)
@@ -165,7 +174,8 @@ class _ToAst(Transformer):
     def neg(self, meta, children):
         return ast.Unary(span=self._span(meta), op="-", operand=children[0])
 
-    def _binary(op):  # noqa: N805 - a small factory used at class creation
+    @staticmethod  # a small factory called while the class body runs
+    def _binary(op: str) -> Callable[..., ast.Binary]:
         @v_args(meta=True)
         def method(self, meta, children):
             return ast.Binary(span=self._span(meta), op=op, left=children[0], right=children[1])
@@ -315,14 +325,10 @@ class _ToAst(Transformer):
             template_span=self._tspan(template),
         )
 
-    @v_args(meta=True)
-    def shape(self, meta, children):
-        if len(children) == 4:
-            name, kind, arguments, pose = children
-        else:  # pragma: no cover - the grammar always yields the optional name slot
-            name, (kind, arguments, pose) = None, children
+    def _kind_call(self, node_type: type, meta, name, kind, arguments, pose) -> Any:
+        """A ``[name =] kind(arguments) at pose`` statement (shapes, targets)."""
         args, kwargs = arguments if arguments is not None else ((), ())
-        return ast.Shape(
+        return node_type(
             span=self._span(meta),
             name_span=self._tspan(name) if name is not None else None,
             name=str(name) if name is not None else None,
@@ -334,12 +340,21 @@ class _ToAst(Transformer):
         )
 
     @v_args(meta=True)
+    def shape(self, meta, children):
+        if len(children) == 4:
+            name, kind, arguments, pose = children
+        else:  # pragma: no cover - the grammar always yields the optional name slot
+            name, (kind, arguments, pose) = None, children
+        return self._kind_call(ast.Shape, meta, name, kind, arguments, pose)
+
+    @v_args(meta=True)
     def point(self, meta, children):
         return ast.Point(
             span=self._span(meta), name_span=self._tspan(children[0]), name=str(children[0]), value=children[1]
         )
 
-    def _call_statement(node_type):  # noqa: N805
+    @staticmethod  # as _binary
+    def _call_statement(node_type: type) -> Callable[..., Any]:
         @v_args(meta=True)
         def method(self, meta, children):
             name, arguments, *rest = children
@@ -363,18 +378,7 @@ class _ToAst(Transformer):
 
     @v_args(meta=True)
     def target(self, meta, children):
-        name, kind, arguments, pose = children
-        args, kwargs = arguments if arguments is not None else ((), ())
-        return ast.Target(
-            span=self._span(meta),
-            name_span=self._tspan(name),
-            name=str(name),
-            kind=str(kind),
-            args=args,
-            kwargs=kwargs,
-            pose=pose,
-            kind_span=self._tspan(kind),
-        )
+        return self._kind_call(ast.Target, meta, *children)
 
     @v_args(meta=True)
     def measure(self, meta, children):
@@ -480,6 +484,14 @@ def parse_text(text: str, path: str = "<string>") -> tuple[ast.Statement, ...]:
         raise
 
 
+def parse_text_with_includes(text: str, path: str = "<string>") -> tuple[ast.Statement, ...]:
+    """Parse model text and the files it includes; includes resolve relative to ``path``
+    (the current folder for ``"<string>"``)."""
+    statements = parse_text(text, path)
+    base = Path(path).resolve() if path != "<string>" else Path.cwd() / "<string>"
+    return _resolve_includes(statements, base, (base,))
+
+
 def _read_model_text(path: Path, span: SourceSpan | None) -> str:
     try:
         data = path.read_bytes()
@@ -549,6 +561,4 @@ def _resolve_includes(
 
 
 def _replace_body(stmt, body):
-    from dataclasses import replace
-
-    return replace(stmt, body=body)
+    return dataclasses.replace(stmt, body=body)

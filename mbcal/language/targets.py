@@ -14,18 +14,21 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from pathlib import Path
 
 import numpy as np
 
-from mbcal.errors import DimensionError, UndefinedNameError, suggest
+from mbcal.errors import DimensionError, MdlError, MdlTypeError, UndefinedNameError, suggest
 from mbcal.language import ast
-from mbcal.language.ir import SCALAR, VECTOR, Const, make_op
+from mbcal.language.arguments import bind
+from mbcal.language.expressions import Compiler
+from mbcal.language.graph import SCALAR, VECTOR, Const, Node
+from mbcal.language.ir import make_op
 from mbcal.language.model import PointInfo, TargetInfo
+from mbcal.language.scope import Scope
 from mbcal.units import DIMENSIONLESS, LENGTH
 
-if TYPE_CHECKING:
-    from mbcal.language.check import _Checker, _Scope
+__all__ = ["TARGET_KINDS", "SQUARE_CORNERS", "MAX_TARGET_POINTS", "corner_name", "target_points"]
 
 TARGET_KINDS = {
     "chessboard": [("rows", True), ("cols", True), ("square", True)],
@@ -43,17 +46,41 @@ def corner_name(target: str, row: int, col: int) -> str:
 
 
 def target_points(
-    checker: _Checker, stmt: ast.Target, scope: _Scope, frame: int, name: str
+    checker: Compiler, stmt: ast.Target, scope: Scope, frame: int, name: str
 ) -> tuple[list[PointInfo], TargetInfo]:
-    """Compile a ``target`` statement into its named points and its description."""
+    """Compile a ``target`` statement into its named points and its description.
+
+    Parameters
+    ----------
+    checker : Compiler
+        The model's expression compiler.
+    stmt : ast.Target
+        The statement.
+    scope : Scope
+        Where it stands.
+    frame : int
+        The target's own frame.
+    name : str
+        Its full name (the points are ``name.r0c0``, ...).
+
+    Returns
+    -------
+    points : list of PointInfo
+        The target's points, in detection order.
+    info : TargetInfo
+        Its kind and layout.
+    """
     points = _points(checker, stmt, scope, frame, name)
     rows = cols = 0
     ratio = 0.0
     if stmt.kind != "points":
-        from mbcal.language.check import _bind
-
-        bound = _bind(stmt.kind, TARGET_KINDS[stmt.kind], stmt.args, stmt.kwargs, stmt.span)
-        rows, cols = (int(float(checker.compile(bound[k], scope).value)) for k in ("rows", "cols"))
+        bound = bind(stmt.kind, TARGET_KINDS[stmt.kind], stmt.args, stmt.kwargs, stmt.span)
+        counts = []
+        for key in ("rows", "cols"):
+            node = checker.compile(bound[key], scope)
+            assert isinstance(node, Const)  # _points() refused anything else
+            counts.append(int(float(node.value)))
+        rows, cols = counts
         if stmt.kind == "squares":
             size = checker.compile(bound["size"], scope)
             pitch = checker.compile(bound["pitch"], scope)
@@ -63,16 +90,14 @@ def target_points(
     return points, info
 
 
-def _points(checker: _Checker, stmt: ast.Target, scope: _Scope, frame: int, name: str) -> list[PointInfo]:
-    from mbcal.language.check import _bind
-
+def _points(checker: Compiler, stmt: ast.Target, scope: Scope, frame: int, name: str) -> list[PointInfo]:
     if stmt.kind not in TARGET_KINDS:
         raise UndefinedNameError(
             f"unknown target '{stmt.kind}' (one of {', '.join(TARGET_KINDS)})",
             stmt.kind_span or stmt.span,
             hint=suggest(stmt.kind, TARGET_KINDS),
         )
-    bound = _bind(stmt.kind, TARGET_KINDS[stmt.kind], stmt.args, stmt.kwargs, stmt.span)
+    bound = bind(stmt.kind, TARGET_KINDS[stmt.kind], stmt.args, stmt.kwargs, stmt.span)
     if stmt.kind == "points":
         return _file_points(checker, stmt, bound, scope, frame, name)
     counts = []
@@ -106,13 +131,23 @@ def _points(checker: _Checker, stmt: ast.Target, scope: _Scope, frame: int, name
     return points
 
 
-def _scaled(value: float, length) -> object:
+def _scaled(value: float, length: Node) -> Node:
     return make_op("mul", [Const(kind=SCALAR, dim=None, value=np.asarray(float(value))), length], SCALAR, LENGTH)
 
 
-def _square_points(checker, stmt, bound, scope, frame, name, rows, cols) -> list[PointInfo]:
+def _square_points(
+    checker: Compiler,
+    stmt: ast.Target,
+    bound: dict[str, ast.Expr],
+    scope: Scope,
+    frame: int,
+    name: str,
+    rows: int,
+    cols: int,
+) -> list[PointInfo]:
     size = checker.arg(bound, "size", scope, dim=LENGTH, what="the square size")
     pitch = checker.arg(bound, "pitch", scope, dim=LENGTH, what="the pitch (distance between squares)")
+    assert size is not None and pitch is not None  # required by TARGET_KINDS
     for node, key in ((size, "size"), (pitch, "pitch")):
         if isinstance(node, Const) and not float(node.value) > 0:
             raise DimensionError(f"'{key}' must be positive", bound[key].span)
@@ -130,11 +165,9 @@ def _square_points(checker, stmt, bound, scope, frame, name, rows, cols) -> list
     return points
 
 
-def _file_points(checker, stmt, bound, scope, frame, name) -> list[PointInfo]:
-    from pathlib import Path
-
-    from mbcal.errors import MdlError, MdlTypeError
-
+def _file_points(
+    checker: Compiler, stmt: ast.Target, bound: dict[str, ast.Expr], scope: Scope, frame: int, name: str
+) -> list[PointInfo]:
     expr = bound["file"]
     if not isinstance(expr, ast.String):
         raise MdlTypeError('points() needs a file name in quotes: points("corners.txt")', expr.span)

@@ -22,9 +22,10 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from mbcal._jax import jax, jnp
-from mbcal.camera import project_camera_points
+from mbcal.geometry.camera import project_camera_points
+from mbcal.geometry.raycast import cast_rays, distance_to_shapes
 from mbcal.language.ir import Const
-from mbcal.measurements import Batch, MeasurementModel, Role, frame_poses_with_world
+from mbcal.measurements.protocol import Batch, MeasurementModel, Role, frame_poses_with_world
 from mbcal.modeling import Needs
 
 if TYPE_CHECKING:
@@ -249,8 +250,6 @@ class Range(MeasurementModel):
         return T[:, :3, 3], directions, max_range
 
     def predict(self, scenes: Scene, batch: Batch) -> Array:
-        from mbcal.raycast import cast_rays
-
         origins, directions, max_range = self._rays(scenes, batch)
         shapes = scenes.model.shapes
         poses = scenes.shape_poses[batch.config]
@@ -263,8 +262,6 @@ class Range(MeasurementModel):
         return jnp.where(t < max_range, t, max_range)[:, None]  # a miss reads the maximum range
 
     def visible(self, scenes: Scene, batch: Batch) -> Array:
-        from mbcal.raycast import cast_rays
-
         origins, directions, max_range = self._rays(scenes, batch)
         shapes = scenes.model.shapes
         t = jax.vmap(lambda P, D, o, d: cast_rays(P, D, shapes, o[None], d[None])[0])(
@@ -303,8 +300,6 @@ class PointToSurface(MeasurementModel):
         return None
 
     def predict(self, scenes: Scene, batch: Batch) -> Array:
-        from mbcal.raycast import distance_to_shapes
-
         model = scenes.model
         T = _frame_poses(scenes, batch, "frame")
         p = rotate(T[:, :3, :3], jnp.asarray(batch.data)) + T[:, :3, 3]

@@ -14,9 +14,21 @@ import json
 import math
 from pathlib import Path
 
-from mbcal.report import table
+import numpy as np
 
-__all__ = ["run_demo", "DEMO_TRUTH", "SEED_ROOM"]
+from mbcal.api import calibrate, simulate
+from mbcal.errors import MbcalError
+from mbcal.language import load_model
+from mbcal.language.model import Model
+from mbcal.measurements.io import read_measurements, write_measurements
+from mbcal.modeling import modeler, parameter_vector
+from mbcal.outputs import atomic_write
+from mbcal.render.overlays import calibration_overlays, residual_plot
+from mbcal.render.views import render_view, save_png
+from mbcal.resources import bundled
+from mbcal.text import table
+
+__all__ = ["run_demo", "line_of_sight_errors", "DEMO_TRUTH", "SEED_ROOM"]
 
 # The true pose of the room relative to its model (SI units).
 DEMO_TRUTH = {
@@ -34,25 +46,16 @@ SEED_ROOM = {"before": (4.2, 16.5), "after": (1.5, 2.9)}
 
 def run_demo(out: Path, *, restarts: int = 32, seed: int = 0, quiet: bool = False, progress=None) -> int:
     """Run the demo, write its files into ``out`` and print the report; returns the exit status."""
-    import mbcal
-    from mbcal.experiments import ROOM_POINTS, line_of_sight_errors
-    from mbcal.fileio import atomic_write
-    from mbcal.measurements.files import read_measurements, write_measurements
-    from mbcal.modeling import modeler, parameter_vector
-    from mbcal.overlays import calibration_overlays, residual_plot
-    from mbcal.render import render_view, save_png
-    from mbcal.resources import bundled
-
     say = (lambda *a: None) if quiet else print
     step = progress.step if progress else (lambda _m: None)
     out = Path(out)
     if out.exists() and not out.is_dir():
-        raise mbcal.MbcalError(f"{out} is a file; the demo writes into a folder")
+        raise MbcalError(f"{out} is a file; the demo writes into a folder")
     out.mkdir(parents=True, exist_ok=True)
 
     step("loading the factory corner model and the 24-point stereo plan")
     model_path = bundled("models/teleexistence.mdl")
-    model = mbcal.load_model(model_path)
+    model = load_model(model_path)
     plan = read_measurements(bundled("measurements/room_plan.csv"), model)
 
     step("rendering the camera images of the true room")
@@ -62,11 +65,11 @@ def run_demo(out: Path, *, restarts: int = 32, seed: int = 0, quiet: bool = Fals
         save_png(image, out / f"camera_{cam.split('.')[-1]}.png")
 
     step("clicking the 24 points in both images (simulated, σ = 1 px)")
-    data = mbcal.simulate(model, plan, DEMO_TRUTH, noise=1.0, seed=seed)
+    data = simulate(model, plan, DEMO_TRUTH, noise=1.0, seed=seed)
     write_measurements(data, out / "clicked_points.csv")
 
     step(f"calibrating the room pose from {restarts} random starts")
-    result = mbcal.calibrate(model, data, ["room.*"], restarts=restarts, seed=seed)
+    result = calibrate(model, data, ["room.*"], restarts=restarts, seed=seed)
 
     step("drawing the model over the camera images, before and after")
     pictures = calibration_overlays(result, out, backgrounds=images)
@@ -76,7 +79,8 @@ def run_demo(out: Path, *, restarts: int = 32, seed: int = 0, quiet: bool = Fals
     if progress:
         progress.done()
 
-    lever = [p for p in ROOM_POINTS if p.startswith("lever")]
+    # The lever's clicked points: the seed reports its errors there.
+    lever = list(dict.fromkeys(m.refs["point"] for m in plan if ".lever." in f".{m.refs['point']}"))
     X_true = parameter_vector(model, DEMO_TRUTH)
     before = line_of_sight_errors(model, X_true, model.nominal, lever, "eyes.left")
     X_after = result.problem.params.X(result.x)[0]
@@ -128,3 +132,26 @@ def run_demo(out: Path, *, restarts: int = 32, seed: int = 0, quiet: bool = Fals
     ]
     say(f"\nwrote {out}/: " + ", ".join(names))
     return 0 if result.ok else 1
+
+
+def line_of_sight_errors(
+    model: Model, X_true: np.ndarray, X_model: np.ndarray, points: list[str], camera: str, config: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Position errors of named points, split across (⟂, largest component) and along (∥) the
+    line of sight from ``camera``: the way the seed reports its errors.
+
+    ``X_true`` and ``X_model`` are parameter matrices (C, n) or vectors (n,).  Returns (⟂, ∥)
+    arrays in metres, one entry per point.
+    """
+    X_true, X_model = np.atleast_2d(X_true), np.atleast_2d(X_model)
+    true = modeler(model, X_true[config])
+    est = modeler(model, X_model[config])
+    eye = np.asarray(true.camera(camera).center)
+    perp, par = [], []
+    for p in points:
+        a, b = np.asarray(true.point(p)), np.asarray(est.point(p))
+        u = (a - eye) / np.linalg.norm(a - eye)
+        e = b - a
+        par.append(abs(float(e @ u)))
+        perp.append(float(np.linalg.norm(e - (e @ u) * u)))
+    return np.array(perp), np.array(par)

@@ -1,90 +1,16 @@
-"""Readable text: terminal tables and model summaries.
-
-Plain text tables with box-drawing rules — no third-party dependency — that read well in a
-terminal, a log file and a CI transcript alike.
-"""
+"""A model's summary as text: what ``mbcal check`` prints."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
+from mbcal.language.graph import Const
+from mbcal.text import fmt, table
 
 if TYPE_CHECKING:
     from mbcal.language.model import Model
 
-__all__ = ["table", "fmt", "model_summary"]
-
-
-def fmt(value: Any, digits: int = 6) -> str:
-    """A number with ``digits`` significant digits; other values as str."""
-    if value is None:
-        return "—"
-    if isinstance(value, (bool, np.bool_)):
-        return "yes" if value else "no"
-    if isinstance(value, (int, np.integer)):
-        return str(int(value))
-    if isinstance(value, (float, np.floating)):
-        v = float(value)
-        if np.isnan(v):
-            return "—"
-        if np.isinf(v):
-            return "∞" if v > 0 else "-∞"
-        if v == 0:
-            return "0"
-        return f"{v:.{digits}g}"
-    return str(value)
-
-
-def table(
-    headers: Sequence[str],
-    rows: Sequence[Sequence[Any]],
-    *,
-    title: str | None = None,
-    align: str | None = None,
-    max_rows: int | None = None,
-) -> str:
-    """A text table.
-
-    Parameters
-    ----------
-    headers : sequence of str
-    rows : sequence of rows; cells are formatted with :func:`fmt`
-    title : str, optional
-        A line above the table.
-    align : str, optional
-        One letter per column, ``l`` or ``r``; numbers are right-aligned by default.
-    max_rows : int, optional
-        Show at most this many rows and say how many were left out.
-    """
-    shown = list(rows if max_rows is None else rows[:max_rows])
-    cells = [[c if isinstance(c, str) else fmt(c) for c in row] for row in shown]
-    if align is None:
-        align = "".join(
-            "r" if shown and all(isinstance(r[i], (int, float, np.number)) for r in shown if i < len(r)) else "l"
-            for i in range(len(headers))
-        )
-    widths = [len(h) for h in headers]
-    for row in cells:
-        for i, c in enumerate(row):
-            widths[i] = max(widths[i], len(c))
-
-    def line(values: Sequence[str]) -> str:
-        parts = []
-        for i, v in enumerate(values):
-            parts.append(v.rjust(widths[i]) if align[i] == "r" else v.ljust(widths[i]))
-        return "  ".join(parts).rstrip()
-
-    out = []
-    if title:
-        out.append(title)
-    out.append(line(list(headers)))
-    out.append("  ".join("─" * w for w in widths).rstrip())
-    out.extend(line(r) for r in cells)
-    if max_rows is not None and len(rows) > max_rows:
-        out.append(f"… {len(rows) - max_rows} more rows")
-    return "\n".join(out)
+__all__ = ["model_summary"]
 
 
 def _value_with_unit(info, value: float | None) -> str:
@@ -96,8 +22,6 @@ def _value_with_unit(info, value: float | None) -> str:
 
 def model_summary(model: Model) -> str:
     """Parameters, frames, points, sensors and shapes of a model, as text."""
-    from mbcal.language.ir import Const
-
     out = [f"model {model.path}"]
     if len(model.files) > 1:
         out.append("includes " + ", ".join(model.files[1:]))
@@ -106,6 +30,7 @@ def model_summary(model: Model) -> str:
         f"{len(model.cameras)} cameras, {len(model.ranges)} range sensors, {len(model.shapes)} shapes"
     )
     out.append(counts)
+    rows: list[list[Any]]
     if model.params:
         rows = []
         for p in model.params:

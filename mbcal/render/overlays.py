@@ -7,12 +7,16 @@ every point as a line from where the model puts it to where it was measured.
 
 from __future__ import annotations
 
+import io
 from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 
 from mbcal._jax import jax, jnp
+from mbcal.modeling import Needs
+from mbcal.outputs import atomic_write
+from mbcal.render.views import Layer, draw_overlay, render_view, save_png, wireframe_layer
 
 __all__ = ["calibration_overlays", "residual_plot", "BEFORE", "AFTER", "MEASURED"]
 
@@ -23,8 +27,6 @@ RESIDUAL = (230, 130, 0)
 
 
 def _config_scene(problem, x, config: int):
-    from mbcal.modeling import Needs
-
     scenes = problem.scenes(jnp.asarray(x, dtype=float), needs=Needs.everything())
     return jax.tree_util.tree_map(lambda a: a[config], scenes)
 
@@ -56,8 +58,6 @@ def calibration_overlays(
     vector_scale : float
         The residuals after calibration are drawn this many times longer (they are small).
     """
-    from mbcal.render import Layer, draw_overlay, render_view, save_png, wireframe_layer
-
     problem = result.problem
     model = problem.model
     out_dir = Path(out_dir)
@@ -77,10 +77,6 @@ def calibration_overlays(
     configs = list(problem.params.configurations)
     predicted_before = problem.predict(before_x)
     index = {m.id: i for i, m in enumerate(problem.measurements.measurements)}
-    row_start = {}
-    for g in problem.groups:
-        for k, i in enumerate(g.members):
-            row_start[int(i)] = g.start + k * g.model.size
     for (camera, config), members in list(groups.items())[:max_images]:
         c = configs.index(config)
         scene_before = _config_scene(problem, before_x, c)
@@ -92,7 +88,7 @@ def calibration_overlays(
             background = (0.55 * view_after.color + 0.45 * 255).astype(np.uint8)
         measured = np.array([r.measured for r in members])
         after = np.array([r.predicted for r in members])
-        before = np.array([predicted_before[row_start[index[r.id]] : row_start[index[r.id]] + 2] for r in members])
+        before = np.array([predicted_before[problem.measurement_rows[index[r.id]]] for r in members])
         stem = f"{_safe(model.short_name('camera', camera))}" + ("" if config == "default" else f"_{_safe(config)}")
         img = draw_overlay(
             background,
@@ -125,14 +121,10 @@ def calibration_overlays(
 
 def residual_plot(result, path, *, title: str | None = None) -> Path:
     """A PNG of the normalised residuals (worst first) and of the image residual vectors."""
-    import io
-
-    import matplotlib
+    import matplotlib  # heavy: loaded only when a plot is made
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from mbcal.fileio import atomic_write
+    import matplotlib.pyplot as plt  # heavy: as above
 
     rows = sorted(result.residuals, key=lambda r: -r.normalized)
     image_rows = [r for r in result.residuals if r.kind == "image_point"]

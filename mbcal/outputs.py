@@ -14,13 +14,9 @@ import tempfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
-from mbcal.errors import MbcalError
+from mbcal.errors import OutputError
 
 __all__ = ["atomic_write", "atomic_writer", "check_output", "OutputError"]
-
-
-class OutputError(MbcalError):
-    """An output cannot be written (it would overwrite an input, its folder is missing, ...)."""
 
 
 def check_output(
@@ -54,7 +50,8 @@ def atomic_writer(path: str | os.PathLike[str], mode: str = "wb") -> Iterator:
     target = Path(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part", dir=target.resolve().parent)
     try:
-        with os.fdopen(fd, mode, **({} if "b" in mode else {"encoding": "utf-8", "newline": ""})) as handle:
+        encoding, newline = (None, None) if "b" in mode else ("utf-8", "")
+        with os.fdopen(fd, mode, encoding=encoding, newline=newline) as handle:
             yield handle
             handle.flush()
             os.fsync(handle.fileno())

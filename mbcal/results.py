@@ -1,20 +1,225 @@
-"""Calibration and plan reports: text tables for people, JSON for programs (docs/report.md)."""
+"""What a calibration or a plan analysis found, and its report: text tables for people, JSON for
+programs (docs/report.md)."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from dataclasses import dataclass, field, fields
+from typing import Any
 
 import numpy as np
 
-from mbcal.report import fmt, table
+from mbcal.export.mdl import write_calibrated_model
+from mbcal.measurements.registry import get_model
+from mbcal.observability import Observability, PointUncertainty
+from mbcal.problem import Problem
+from mbcal.solver import LeastSquaresResult, SolverConfig, Status
+from mbcal.text import fmt, table
 from mbcal.units import to_display
 
-if TYPE_CHECKING:
-    from mbcal.api import CalibrationResult, PlanAnalysis
-
-__all__ = ["result_json", "result_text", "plan_json", "plan_text", "REPORT_FORMAT"]
+__all__ = [
+    "CalibrationResult",
+    "PlanAnalysis",
+    "ResidualRow",
+    "RunInfo",
+    "result_json",
+    "result_text",
+    "plan_json",
+    "plan_text",
+    "REPORT_FORMAT",
+]
 
 REPORT_FORMAT = "mbcal-report-1"
+
+
+@dataclass(frozen=True)
+class ResidualRow:
+    """One measurement at the solution."""
+
+    id: str
+    kind: str
+    config: str
+    refs: dict[str, str]
+    measured: np.ndarray
+    predicted: np.ndarray
+    normalized: float  # √((h − y)ᵀ W (h − y)): the residual in units of its σ
+
+    @property
+    def residual(self) -> np.ndarray:
+        """measured − predicted, in the measurement's units."""
+        return self.measured - self.predicted
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "id": self.id,
+            "kind": self.kind,
+            "config": self.config,
+            "refs": self.refs,
+            "measured": [float(v) for v in self.measured],
+            "predicted": [float(v) for v in self.predicted],
+            "residual": [float(v) for v in self.residual],
+            "normalized": float(self.normalized),
+        }
+
+
+@dataclass(frozen=True)
+class RunInfo:
+    """How a calibration was run: what the report's ``restarts`` and ``not_visible`` come from."""
+
+    restarts: int = 0
+    """Number of starting points."""
+    seed: int | None = None
+    """Seed of the random starting points."""
+    config: SolverConfig | None = None
+    """The solver's settings."""
+    scale_covariance: bool = False
+    """Whether the covariance was scaled by the reduced χ²."""
+    not_visible: tuple[str, ...] = ()
+    """Ids of the measurements that cannot be made at the solution."""
+
+    def as_dict(self) -> dict[str, Any]:
+        """The fields as a dict (``not_visible`` as a list): the ``info`` of mbcal 0.1."""
+        out = {f.name: getattr(self, f.name) for f in fields(self)}
+        out["not_visible"] = list(self.not_visible)
+        return out
+
+
+@dataclass
+class CalibrationResult:
+    """Everything a calibration found.
+
+    Values, σ and covariance are in SI units (metres, radians); ``display`` converts angles to
+    degrees for reports.  Unobservable unknowns have σ = inf (never NaN).
+    """
+
+    problem: Problem
+    solver: LeastSquaresResult
+    x: np.ndarray
+    x_initial: np.ndarray
+    observability: Observability
+    residuals: list[ResidualRow]
+    points: list[PointUncertainty]
+    cost: float
+    rms: dict[str, float]
+    elapsed: float
+    outlier_threshold: float = 3.0
+    run: RunInfo = field(default_factory=RunInfo)
+
+    @property
+    def info(self) -> dict[str, Any]:
+        """``run`` as a dict — the untyped form of mbcal 0.1, kept for one release (use ``run``)."""
+        return self.run.as_dict()
+
+    # ---- headline numbers ----------------------------------------------------------------------
+
+    @property
+    def names(self) -> list[str]:
+        return self.problem.unknown_names
+
+    @property
+    def values(self) -> dict[str, float]:
+        return dict(zip(self.names, map(float, self.x)))
+
+    @property
+    def initial(self) -> dict[str, float]:
+        return dict(zip(self.names, map(float, self.x_initial)))
+
+    @property
+    def std(self) -> dict[str, float]:
+        return dict(zip(self.names, map(float, self.observability.std)))
+
+    @property
+    def covariance(self) -> np.ndarray:
+        return self.observability.covariance
+
+    @property
+    def correlation(self) -> np.ndarray:
+        return self.observability.correlation
+
+    @property
+    def status(self) -> Status:
+        return self.solver.status_best
+
+    @property
+    def converged(self) -> bool:
+        return self.solver.best >= 0 and self.status.converged
+
+    @property
+    def observable(self) -> bool:
+        return self.observability.observable_with_priors
+
+    @property
+    def ok(self) -> bool:
+        """Converged and every unknown determined."""
+        return self.converged and self.observable
+
+    @property
+    def n_measurements(self) -> int:
+        return self.problem.size
+
+    @property
+    def dof(self) -> int:
+        return max(self.problem.n_residuals - self.observability.rank_with_priors, 0)
+
+    @property
+    def reduced_chi2(self) -> float:
+        return self.cost / self.dof if self.dof > 0 else float("nan")
+
+    @property
+    def outliers(self) -> list[ResidualRow]:
+        """Measurements whose normalised residual exceeds the threshold, worst first."""
+        rows = [r for r in self.residuals if r.normalized > self.outlier_threshold]
+        return sorted(rows, key=lambda r: -r.normalized)
+
+    def display(self, name: str, value: float) -> float:
+        return to_display(self.problem.params.info(name).unit, value)
+
+    def unit(self, name: str) -> str:
+        return self.problem.params.info(name).unit
+
+    # ---- output ------------------------------------------------------------------------------------
+
+    def to_json(self) -> dict[str, Any]:
+        """The report as plain data (schema: docs/report.md)."""
+        return result_json(self)
+
+    def summary(self, *, max_residuals: int = 15) -> str:
+        """The report as text tables."""
+        return result_text(self, max_residuals=max_residuals)
+
+    def write_model(self, path, *, overwrite: bool = True) -> None:
+        """Write the model with the estimated values as its nominal values (the input is untouched)."""
+        note = []
+        if self.problem.measurements.path:
+            note.append(
+                f"with {self.problem.measurements.path}: S = {self.cost:.6g}, "
+                + ", ".join(f"RMS {k} {v:.4g}" for k, v in self.rms.items())
+            )
+        write_calibrated_model(self.problem.model, self.values, path, std=self.std, note=note, overwrite=overwrite)
+
+
+@dataclass
+class PlanAnalysis:
+    """Is a measurement plan enough? (``mbcal observe``)."""
+
+    problem: Problem
+    x: np.ndarray
+    observability: Observability
+    points: list[PointUncertainty]
+    invisible: list[str]
+
+    @property
+    def names(self) -> list[str]:
+        return self.problem.unknown_names
+
+    @property
+    def std(self) -> dict[str, float]:
+        return dict(zip(self.names, map(float, self.observability.std)))
+
+    def to_json(self) -> dict[str, Any]:
+        return plan_json(self)
+
+    def summary(self) -> str:
+        return plan_text(self)
 
 
 def _num(v: float) -> float | None:
@@ -92,7 +297,7 @@ def result_json(r: CalibrationResult) -> dict[str, Any]:
             "count": int(len(solver.cost)),
             "converged": int(np.sum(solver.converged)),
             "best": int(solver.best),
-            "seed": r.info.get("seed"),
+            "seed": r.run.seed,
             "runs": [
                 {
                     "index": i,
@@ -107,10 +312,10 @@ def result_json(r: CalibrationResult) -> dict[str, Any]:
         },
         "residuals": [row.to_json() for row in r.residuals],
         "outliers": {"threshold": r.outlier_threshold, "ids": [row.id for row in r.outliers]},
-        "not_visible": list(r.info.get("not_visible", [])),
+        "not_visible": list(r.run.not_visible),
         "points": [p.to_json() for p in r.points],
         "solver": {
-            "loss": solver.config.loss,
+            "loss": str(solver.config.loss),
             "loss_scale": solver.config.loss_scale,
             "max_iterations": solver.config.max_iterations,
             "ftol": solver.config.ftol,
@@ -177,8 +382,6 @@ def _points_text(points, model) -> list[str]:
 
 
 def _roles(kind: str):
-    from mbcal.measurements import get_model
-
     return get_model(kind).roles
 
 
@@ -236,7 +439,7 @@ def result_text(r: CalibrationResult, *, max_residuals: int = 15) -> str:
             title=f"residuals, worst first ({len(r.residuals)} in all):",
         )
     )
-    hidden = r.info.get("not_visible") or []
+    hidden = list(r.run.not_visible)
     if hidden:
         out.append(
             f"warning: {len(hidden)} measurement(s) cannot be made at the solution (the point is behind the camera "

@@ -1,6 +1,7 @@
 """The seed's calibration experiments (section 4.2): measurement plans for the bundled models.
 
-``python -m mbcal.experiments plans`` writes the plans in ``measurements/``:
+``python bench/plans.py plans`` writes the plans in ``measurements/`` (they ship with mbcal; run
+this only to make them anew):
 
 * ``room_plan.csv`` — 24 named points of the factory corner, each clicked in both images of the
   robot's stereo camera (48 image points, 96 values), σ = 1 px (mouse clicking).
@@ -23,9 +24,12 @@ from pathlib import Path
 
 import numpy as np
 
+from mbcal._jax import jax, jnp
 from mbcal.language import load_model
 from mbcal.language.model import Model
-from mbcal.measurements.files import MeasurementSet, measurements_from_records, write_measurements
+from mbcal.measurements.io import write_measurements
+from mbcal.measurements.sets import MeasurementSet, measurements_from_records
+from mbcal.modeling import modeler, parameter_vector
 
 __all__ = [
     "room_plan",
@@ -34,7 +38,6 @@ __all__ = [
     "ROOM_POINTS",
     "HAND_POINTS",
     "write_plans",
-    "line_of_sight_errors",
 ]
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -77,8 +80,6 @@ def room_plan(model: Model, sigma: float = 1.0) -> MeasurementSet:
 
 def _look_at_hand(model: Model, readings: dict[str, float]) -> dict[str, float]:
     """Neck pan and tilt that point the cameras at the hand."""
-    from mbcal.modeling import modeler, parameter_vector
-
     scene = modeler(model, parameter_vector(model, readings))
     hand = np.asarray(scene.point("hand.knuckle_a"))
     neck = np.asarray(scene.frame("neck_pan"))[:3, 3]
@@ -94,8 +95,6 @@ def _look_at_hand(model: Model, readings: dict[str, float]) -> dict[str, float]:
 
 def _projector(model: Model):
     """A jitted X (k, n) → (depth, pixels) of the hand points in both cameras."""
-    from mbcal._jax import jax, jnp
-    from mbcal.modeling import modeler
 
     def one(X):
         scene = modeler(model, X)
@@ -111,8 +110,6 @@ def _projector(model: Model):
 
 
 def _hand_visible(model: Model, project, readings: dict[str, float], margin: float = 30.0) -> bool:
-    from mbcal.modeling import parameter_vector
-
     base = parameter_vector(model, readings)
     offsets = [np.zeros(7)] + [s * math.radians(10.0) * np.eye(7)[j] for j in range(7) for s in (-1, 1)]
     X = np.tile(base, (len(offsets), 1))
@@ -172,31 +169,6 @@ def arm_plan(
     return measurements_from_records(records, model, configurations=configurations)
 
 
-def line_of_sight_errors(
-    model: Model, X_true: np.ndarray, X_model: np.ndarray, points: list[str], camera: str, config: int = 0
-) -> tuple[np.ndarray, np.ndarray]:
-    """Position errors of named points, split across (⟂, largest component) and along (∥) the
-    line of sight from ``camera``: the way the seed reports its errors.
-
-    ``X_true`` and ``X_model`` are parameter matrices (C, n) or vectors (n,).  Returns (⟂, ∥)
-    arrays in metres, one entry per point.
-    """
-    from mbcal.modeling import modeler
-
-    X_true, X_model = np.atleast_2d(X_true), np.atleast_2d(X_model)
-    true = modeler(model, X_true[config])
-    est = modeler(model, X_model[config])
-    eye = np.asarray(true.camera(camera).center)
-    perp, par = [], []
-    for p in points:
-        a, b = np.asarray(true.point(p)), np.asarray(est.point(p))
-        u = (a - eye) / np.linalg.norm(a - eye)
-        e = b - a
-        par.append(abs(float(e @ u)))
-        perp.append(float(np.linalg.norm(e - (e @ u) * u)))
-    return np.array(perp), np.array(par)
-
-
 def write_plans(folder: Path | None = None) -> list[Path]:
     """Write the seed's plans into ``folder`` (default: the repository's measurements/)."""
     folder = Path(folder or ROOT / "measurements")
@@ -215,7 +187,7 @@ def write_plans(folder: Path | None = None) -> list[Path]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m mbcal.experiments", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+        prog="python bench/plans.py", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("plans", help="write the seed's measurement plans")

@@ -10,16 +10,21 @@ output is written atomically.
 from __future__ import annotations
 
 import datetime as _dt
+import json
+import os
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from mbcal.errors import MbcalError
+from mbcal.export.urdf import write_urdf
+from mbcal.language import ast
+from mbcal.language.model import Model
+from mbcal.language.parse import parse_text
+from mbcal.language.urdf import urdf_to_mdl
+from mbcal.outputs import atomic_write, check_output
 from mbcal.units import UNITS
-
-if TYPE_CHECKING:
-    from mbcal.api import CalibrationResult
 
 __all__ = ["write_calibrated_model", "format_value"]
 
@@ -40,8 +45,6 @@ def _offset(lines: list[str], line: int, column: int) -> int:
 
 def _file_references(statements) -> list:
     """Every string literal naming a file (includes, meshes) in a syntax tree, with its span."""
-    from mbcal.language import ast
-
     found = []
     for stmt in statements:
         if isinstance(stmt, ast.Include):
@@ -57,11 +60,6 @@ def _file_references(statements) -> list:
 
 def _relocate(text: str, source: Path, out: Path) -> list[tuple[int, int, str]]:
     """Edits that keep relative include and mesh paths valid from the output's folder."""
-    import json
-    import os
-
-    from mbcal.language.parse import parse_text
-
     if source.resolve().parent == out.resolve().parent:
         return []
     lines = text.splitlines(keepends=True)
@@ -92,14 +90,36 @@ def _relocate(text: str, source: Path, out: Path) -> list[tuple[int, int, str]]:
     return edits
 
 
-def write_calibrated_model(result: CalibrationResult, path, *, overwrite: bool = True) -> None:
-    """Write ``result``'s model with the estimates as nominal values (see module doc)."""
-    from mbcal.fileio import atomic_write, check_output
+def write_calibrated_model(
+    model: Model,
+    values: Mapping[str, float],
+    path,
+    *,
+    std: Mapping[str, float] | None = None,
+    note: Sequence[str] = (),
+    overwrite: bool = True,
+) -> None:
+    """Write ``model`` with ``values`` (SI, by unknown name) as its nominal values (see module doc).
 
-    model = result.problem.model
+    Parameters
+    ----------
+    model : Model
+        The model the values belong to; it must have been read from a file.
+    values : mapping
+        Estimates by parameter name; per-configuration copies (``name@config``) are listed in
+        the header only.
+    path : path
+        The output (never one of the model's own files).
+    std : mapping, optional
+        σ of each value, for the header.
+    note : sequence of str
+        Extra header lines (what the values were estimated from).
+    overwrite : bool
+        Replace ``path`` if it exists.
+    """
     source = Path(model.path)
     if source.suffix.lower() == ".urdf":
-        _write_from_urdf(result, source, Path(path), overwrite=overwrite)
+        _write_from_urdf(model, values, source, Path(path), overwrite=overwrite)
         return
     if not source.is_file():
         raise MbcalError(f"cannot write a calibrated model: the model was not read from a file ({model.path})")
@@ -109,8 +129,7 @@ def write_calibrated_model(result: CalibrationResult, path, *, overwrite: bool =
     edits: list[tuple[int, int, str]] = []
     overrides: list[str] = []
     main = source.resolve()
-    values = result.values
-    std = result.std
+    std = dict(std or {})
     for name, value in values.items():
         if "@" in name:
             continue  # per-configuration copies are not model values
@@ -122,6 +141,8 @@ def write_calibrated_model(result: CalibrationResult, path, *, overwrite: bool =
             info.editable and span is not None and span.end_line is not None and Path(span.path).resolve() == main
         )
         if in_place:
+            # in_place checked the span; the parser sets end_line and end_column together
+            assert span is not None and span.end_line is not None and span.end_column is not None
             start = _offset(lines, span.line, span.column)
             end = _offset(lines, span.end_line, span.end_column)
             edits.append((start, end, new))
@@ -132,16 +153,17 @@ def write_calibrated_model(result: CalibrationResult, path, *, overwrite: bool =
         text = text[:start] + new + text[end:]
     stamp = _dt.datetime.now().strftime("%Y-%m-%d %H:%M")
     header = [f"# Calibrated by mbcal on {stamp} from {source.name}"]
-    if result.problem.measurements.path:
-        header.append(
-            f"# with {result.problem.measurements.path}: S = {result.cost:.6g}, "
-            + ", ".join(f"RMS {k} {v:.4g}" for k, v in result.rms.items())
-        )
+    header.extend(f"# {line}" for line in note)
     for name, value in values.items():
-        unit = result.unit(name)
-        s = std[name]
+        unit = model.param(name.split("@")[0]).unit
+        s = std.get(name, float("nan"))
         shown = np.degrees(value) if unit == "deg" else value
-        sigma = "unobservable" if not np.isfinite(s) else f"σ {np.degrees(s) if unit == 'deg' else s:.3g}"
+        if np.isnan(s):
+            sigma = "σ not given"
+        elif not np.isfinite(s):
+            sigma = "unobservable"
+        else:
+            sigma = f"σ {np.degrees(s) if unit == 'deg' else s:.3g}"
         header.append(f"#   {name} = {shown:.9g} {unit} ({sigma})".rstrip())
     body = "\n".join(header) + "\n\n" + text
     if overrides:
@@ -152,21 +174,18 @@ def write_calibrated_model(result: CalibrationResult, path, *, overwrite: bool =
     atomic_write(out, body)
 
 
-def _write_from_urdf(result, source: Path, out: Path, *, overwrite: bool) -> None:
+def _write_from_urdf(model: Model, values: Mapping[str, float], source: Path, out: Path, *, overwrite: bool) -> None:
     """A model read from a URDF: a calibrated URDF (offsets folded into the joint origins), or
     the model as .mdl text with the estimates as ``override`` statements."""
-    from mbcal.fileio import atomic_write, check_output
-    from mbcal.urdf import urdf_to_mdl, write_urdf
-
     if out.suffix.lower() == ".urdf":
-        write_urdf(result, source, out, overwrite=overwrite)
+        write_urdf(values, source, out, overwrite=overwrite)
         return
     check_output(out, [source], overwrite=overwrite)
     text = urdf_to_mdl(source, mesh_base=out.resolve().parent)
     lines = [f"# Calibrated by mbcal from {source.name}: estimates as overrides of the URDF's values", ""]
-    for name, value in result.values.items():
+    for name, value in values.items():
         if "@" in name:
             continue
-        info = result.problem.model.param(name)
+        info = model.param(name)
         lines.append(f"override {name} = {format_value(value, 'deg' if info.unit == 'deg' else None)}")
     atomic_write(out, text.rstrip("\n") + "\n\n" + "\n".join(lines) + "\n")

@@ -18,16 +18,13 @@ from typing import Any
 
 import numpy as np
 
-from mbcal.errors import MbcalError
+from mbcal.errors import MbcalError, RenderError
+from mbcal.geometry.shapes import get_shape, shape_mesh
 
 __all__ = ["RenderError", "View", "render_view", "wireframe_segments", "draw_overlay", "save_png"]
 
 # OpenCV camera axes (x right, y down, z forward) → OpenGL's (x right, y up, z backward).
 _CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
-
-
-class RenderError(MbcalError):
-    """Headless rendering is not available (no EGL/OSMesa) or failed."""
 
 
 def _headless() -> None:
@@ -99,9 +96,7 @@ def render_view(
         Add small spheres at the named points.
     """
     pyrender = _pyrender()
-    import trimesh
-
-    from mbcal.scene import shape_mesh
+    import trimesh  # with pyrender: rendering's optional dependencies load on first use
 
     model = scene.model
     cam = scene.camera(camera)
@@ -111,7 +106,7 @@ def render_view(
     poses = np.asarray(scene.shape_poses, dtype=float)
     dims = np.asarray(scene.shape_dims, dtype=float)
     colors = _palette(len(model.shapes))
-    flat = np.array([s.kind in ("rectangle", "plane") for s in model.shapes])
+    flat = np.array([get_shape(s.kind).flat for s in model.shapes], dtype=bool)
     colors[flat] = (0.82, 0.82, 0.80)  # walls and floors in a neutral grey
     pr_scene = pyrender.Scene(bg_color=[*background, 1.0], ambient_light=[0.35, 0.35, 0.35])
     seg_map = {}
@@ -182,28 +177,31 @@ def _silhouette_edges(mesh, eye: np.ndarray) -> np.ndarray:
     return mesh.face_adjacency_edges[flip]
 
 
+def _border_edges(mesh) -> np.ndarray:
+    """Edges that belong to one face only: the outline of a one-sided flat shape."""
+    import trimesh  # as above
+
+    return mesh.edges_sorted[trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1)]
+
+
 def wireframe_segments(scene, camera: str) -> np.ndarray:
     """World-space edges (k, 2, 3) of every shape as seen from ``camera``: feature edges,
     silhouettes and borders (occlusion is not applied here)."""
-    from mbcal.scene import shape_mesh
-
     model = scene.model
     eye = np.asarray(scene.camera(camera).center, dtype=float)
     poses = np.asarray(scene.shape_poses, dtype=float)
     dims = np.asarray(scene.shape_dims, dtype=float)
     out = []
     for i, shape in enumerate(model.shapes):
-        if shape.kind == "plane":
-            continue  # an infinite plane has no edges
-        if shape.kind == "rectangle":
-            sx, sy = dims[i][:2] / 2
-            corners = np.array([[-sx, -sy, 0, 1], [sx, -sy, 0, 1], [sx, sy, 0, 1], [-sx, sy, 0, 1]]) @ poses[i].T
-            c = corners[:, :3]
-            out.append(np.stack([c, np.roll(c, -1, axis=0)], axis=1))
-            continue
-        mesh = shape_mesh(shape.kind, dims[i], shape.mesh, sections=64)
+        kind = get_shape(shape.kind)
+        if not kind.bounded:
+            continue  # an infinite surface has no edges
+        mesh = kind.trimesh(dims[i], shape.mesh, sections=64, two_sided=not kind.flat)
         mesh.apply_transform(poses[i])
-        edges = np.vstack([_feature_edges(mesh), _silhouette_edges(mesh, eye)])
+        if kind.flat:
+            edges = _border_edges(mesh)
+        else:
+            edges = np.vstack([_feature_edges(mesh), _silhouette_edges(mesh, eye)])
         out.append(mesh.vertices[edges])
     return np.concatenate(out) if out else np.zeros((0, 2, 3))
 
@@ -214,7 +212,7 @@ def _visible_samples(scene, camera: str, view: View, segments: np.ndarray, step_
     All segments are sampled and projected at once (numpy); a sample is visible when no
     surface of the rendered depth lies in front of it.
     """
-    from mbcal.camera import project_camera_points
+    from mbcal.geometry.camera import project_camera_points
 
     if len(segments) == 0:
         return []
@@ -319,9 +317,14 @@ def draw_overlay(image: np.ndarray, layers: Sequence[Layer], *, supersample: int
                         fill=layer.color,
                         width=lw,
                     )
-                    r = 1.5 * k
+                    tip = 1.5 * k
                     draw.ellipse(
-                        [(b[0] + 0.5) * k - r, (b[1] + 0.5) * k - r, (b[0] + 0.5) * k + r, (b[1] + 0.5) * k + r],
+                        [
+                            (b[0] + 0.5) * k - tip,
+                            (b[1] + 0.5) * k - tip,
+                            (b[0] + 0.5) * k + tip,
+                            (b[1] + 0.5) * k + tip,
+                        ],
                         fill=layer.color,
                     )
         elif layer.kind == "labels":
@@ -357,7 +360,7 @@ def save_png(image, path) -> None:
 
     from PIL import Image
 
-    from mbcal.fileio import atomic_write
+    from mbcal.outputs import atomic_write
 
     if not isinstance(image, Image.Image):
         image = Image.fromarray(np.asarray(image, dtype=np.uint8))

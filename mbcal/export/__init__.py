@@ -1,0 +1,1 @@
+"""Writing calibrated models: the .mdl text with estimates as nominal values, calibrated URDFs."""

@@ -1,0 +1,169 @@
+"""Second pass of the checker: every declaration compiled into the :class:`Model`.
+
+Parameters first (their values, then ``override``\\ s), then frames with their poses and
+joints, then the statements deferred by the first pass — points, shapes
+(:mod:`mbcal.language.shapes`), cameras and range sensors (:mod:`mbcal.language.sensors`) and
+calibration targets (:mod:`mbcal.language.targets`) — in the order they were written.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+from mbcal.errors import DimensionError, MdlError, UndefinedNameError, UnitError, suggest
+from mbcal.language import ast
+from mbcal.language.arguments import bind
+from mbcal.language.expressions import Compiler, literal_unit
+from mbcal.language.graph import VECTOR, Const
+from mbcal.language.model import (
+    CameraInfo,
+    FrameInfo,
+    JointInfo,
+    Model,
+    PointInfo,
+    RangeInfo,
+    ShapeInfo,
+    TargetInfo,
+)
+from mbcal.language.scope import Deferred, Namespace
+from mbcal.language.sensors import camera, range_sensor
+from mbcal.language.shapes import ShapeChecker
+from mbcal.language.targets import target_points
+from mbcal.units import ANGLE, LENGTH, describe, fits
+
+__all__ = ["build_model", "JOINT_KINDS"]
+
+# Joint kind → the dimension of its variable.
+JOINT_KINDS = {"revolute": ANGLE, "continuous": ANGLE, "prismatic": LENGTH}
+
+
+def build_model(c: Compiler) -> Model:
+    """Compile everything the first pass declared into a model.
+
+    Parameters
+    ----------
+    c : Compiler
+        The expression compiler, holding the namespace of the first pass.
+
+    Returns
+    -------
+    Model
+        Not yet checked at the nominal values (see :func:`mbcal.language.check.check`).
+
+    Raises
+    ------
+    MdlError
+        The first error, with its location.
+    """
+    names = c.names
+    for decl in names.params.values():
+        c.finish_param(decl)
+    _apply_overrides(c, names)
+    frames = []
+    for i, f in enumerate(names.frames):
+        pose = c.pose(f.pose, f.scope) if f.pose is not None else None
+        joint = _joint(c, names.joints[i]) if i in names.joints else None
+        frames.append(FrameInfo(f.name, f.parent, pose, joint, f.keyword, f.span))
+    points: list[PointInfo] = []
+    cameras: list[CameraInfo] = []
+    ranges: list[RangeInfo] = []
+    shapes: list[ShapeInfo] = []
+    shape_checker = ShapeChecker(c)
+    shape_counter: dict[int, int] = {}
+    targets: list[TargetInfo] = []
+    for d in names.deferred:
+        stmt = d.stmt
+        if isinstance(stmt, ast.Point):
+            assert stmt.value is not None
+            node = c.compile(stmt.value, d.scope)
+            c.expect(node, VECTOR, 3, LENGTH, f"point '{stmt.name}'", stmt.value.span)
+            points.append(PointInfo(d.name, d.frame, node, stmt.span))
+        elif isinstance(stmt, ast.Shape):
+            n = shape_counter.get(d.frame, 0)
+            shape_counter[d.frame] = n + 1
+            name = d.name or d.scope.join(f"shape{n}" if stmt.name is None else stmt.name)
+            shapes.append(shape_checker.shape(stmt, d.scope, d.frame, name))
+        elif isinstance(stmt, ast.Camera):
+            cameras.append(camera(c, stmt, d.scope, d.frame, d.name))
+        elif isinstance(stmt, ast.RangeSensor):
+            ranges.append(range_sensor(c, stmt, d.scope, d.frame, d.name))
+        elif isinstance(stmt, ast.Target):
+            target_pts, target = target_points(c, stmt, d.scope, d.frame, d.name)
+            points.extend(target_pts)
+            targets.append(target)
+    params = []
+    for decl in sorted(names.params.values(), key=lambda d: d.index):
+        assert decl.info is not None  # every parameter was finished above
+        params.append(decl.info)
+    return Model(
+        path=names.path,
+        params=tuple(params),
+        frames=tuple(frames),
+        points=tuple(points),
+        cameras=tuple(cameras),
+        ranges=tuple(ranges),
+        shapes=tuple(shapes),
+        measures=tuple(names.measures),
+        targets=tuple(targets),
+        templates=tuple(names.templates),
+        files=tuple(dict.fromkeys(names.files)),
+        warnings=tuple(names.warnings),
+    )
+
+
+def _apply_overrides(c: Compiler, names: Namespace) -> None:
+    for name, (stmt, scope) in names.overrides.items():
+        decl = names.params.get(name)
+        if decl is None:
+            raise UndefinedNameError(
+                f"'override' of an undeclared parameter '{name}'",
+                stmt.name_span or stmt.span,
+                hint=suggest(name, names.params),
+            )
+        info = decl.info
+        assert info is not None and stmt.value is not None
+        value = c.constant(stmt.value, scope, f"the override of '{name}'")
+        if info.dim is not None and not fits(value.dim, info.dim):
+            raise UnitError(f"'{name}' is {describe(info.dim)}, the override is {describe(value.dim)}", stmt.value.span)
+        sigma = info.sigma
+        if stmt.sigma is not None:
+            s = c.constant(stmt.sigma, scope, f"the sigma of the override of '{name}'")
+            if info.dim is not None and not fits(s.dim, info.dim):
+                raise UnitError(f"the sigma of '{name}' must be {describe(info.dim)}", stmt.sigma.span)
+            sigma = float(s.value)
+            if not sigma > 0:
+                raise DimensionError(f"sigma must be positive, got {sigma:g}", stmt.sigma.span)
+        decl.info = dataclasses.replace(
+            info,
+            nominal=float(value.value),
+            sigma=sigma,
+            value_span=stmt.value.span,
+            value_unit=literal_unit(stmt.value),
+            editable=True,
+        )
+
+
+def _joint(c: Compiler, d: Deferred) -> JointInfo:
+    stmt = d.stmt
+    assert isinstance(stmt, ast.Joint)
+    if stmt.kind not in JOINT_KINDS:
+        raise MdlError(
+            f"unknown joint kind '{stmt.kind}' (revolute, continuous or prismatic)",
+            stmt.span,
+            hint=suggest(stmt.kind, JOINT_KINDS),
+        )
+    dim = JOINT_KINDS[stmt.kind]
+    signature = [("axis", True), ("q", True), ("offset", False), ("lower", False), ("upper", False)]
+    bound = bind(f"joint {stmt.kind}", signature, stmt.args, stmt.kwargs, stmt.span)
+    axis = c.axis(bound["axis"], d.scope)
+    q = c.arg(bound, "q", d.scope, dim=dim, what="the joint variable")
+    offset = c.arg(bound, "offset", d.scope, dim=dim, what="the joint offset")
+    limits = []
+    for key in ("lower", "upper"):
+        node = c.arg(bound, key, d.scope, dim=dim, what=f"the joint's {key} limit")
+        if node is not None and not isinstance(node, Const):
+            raise MdlError(f"the joint's {key} limit must be a constant", bound[key].span)
+        limits.append(float(node.value) if isinstance(node, Const) else None)
+    assert q is not None
+    kind = "revolute" if stmt.kind == "continuous" else stmt.kind
+    return JointInfo(kind, axis, q, offset, limits[0], limits[1], stmt.span)

@@ -1,0 +1,192 @@
+"""Scopes and names: what each name of a model refers to, before anything is compiled.
+
+The first pass (:mod:`mbcal.language.expand`) records every declaration here, in a
+:class:`Namespace`; ``let`` definitions, template arguments and parameters are held as
+declarations that the expression compiler (:mod:`mbcal.language.expressions`) compiles on first
+use, once.
+
+Name look-up, innermost first (:meth:`Namespace.lookup`):
+
+1. ``let`` definitions and template arguments of the enclosing scopes (a template body sees
+   only its own arguments and lets, and global names — not the caller's);
+2. the constant ``pi``;
+3. parameters, first relative to the enclosing frames (inside ``frame room``, ``x`` finds a
+   parameter declared there, ``room.x``), then by their full name.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from mbcal.errors import SourceSpan, UndefinedNameError, suggest
+from mbcal.language import ast
+from mbcal.language.graph import Node, ParamRef
+from mbcal.language.model import ParamInfo
+
+__all__ = ["CONSTANTS", "Scope", "Lazy", "ParamDecl", "FrameDecl", "Deferred", "Namespace"]
+
+CONSTANTS = {"pi": math.pi}
+
+
+@dataclass(eq=False)
+class Scope:
+    """Where a statement stands: inside which frames, templates and ``let``\\ s.
+
+    Attributes
+    ----------
+    path : str
+        Prefix of the names declared here (``""`` at the top level).
+    parent : Scope or None
+        The enclosing scope whose ``let``\\ s are visible here.
+    frame : int
+        Index of the frame statements here attach to (-1: the world).
+    locals : dict
+        ``let`` definitions and template arguments declared here.
+    local_spans : dict
+        Where each local is declared.
+    in_template : bool
+        Inside a template body (its parameters are not editable in place).
+    """
+
+    path: str
+    parent: Scope | None
+    frame: int
+    locals: dict[str, Lazy] = field(default_factory=dict)
+    local_spans: dict[str, SourceSpan] = field(default_factory=dict)
+    in_template: bool = False
+
+    def join(self, name: str) -> str:
+        """The full name of ``name`` declared in this scope."""
+        return f"{self.path}.{name}" if self.path else name
+
+
+@dataclass(eq=False)
+class Lazy:
+    """A ``let`` or template argument: compiled on first use, once."""
+
+    what: str
+    expr: ast.Expr
+    scope: Scope
+    node: Node | None = None
+    busy: bool = False
+
+
+@dataclass(eq=False)
+class ParamDecl:
+    """A parameter statement (one entry of an index range); its value is compiled on first use."""
+
+    stmt: ast.Param
+    name: str
+    scope: Scope
+    index: int
+    node: ParamRef | None = None
+    info: ParamInfo | None = None
+    busy: bool = False
+
+
+@dataclass(eq=False)
+class FrameDecl:
+    """A frame (object, link, sensor or target) whose pose is compiled in the second pass."""
+
+    name: str
+    parent: int
+    pose: ast.Expr | None
+    scope: Scope
+    keyword: str
+    span: SourceSpan
+
+
+@dataclass(eq=False)
+class Deferred:
+    """A statement whose expressions are compiled once every parameter is declared."""
+
+    stmt: ast.Statement
+    scope: Scope
+    frame: int
+    name: str = ""
+
+
+@dataclass(eq=False)
+class Namespace:
+    """Everything the first pass declares, by full name, and the scopes it was declared in.
+
+    Attributes
+    ----------
+    path : str
+        The model file (``<string>`` for text).
+    templates : dict
+        Templates by name.
+    params : dict
+        Parameter declarations by full name, in declaration order.
+    frames : list of FrameDecl
+        Frames in declaration order (their index is the frame index of the model).
+    frame_index : dict
+        Frame name → index.
+    declared : dict
+        Frames, points, sensors and shapes by full name → where declared.
+    deferred : list of Deferred
+        Points, shapes, cameras, range sensors and targets, compiled in the second pass.
+    joints : dict
+        Frame index → its joint statement.
+    measures : list of str
+        The measurement models named by ``measure``.
+    files : list of str
+        The model file and every file it includes.
+    warnings : list of str
+        Warnings for the model's summary.
+    overrides : dict
+        Parameter name → its ``override`` statement and scope.
+    global_scope : Scope
+        The top level.
+    """
+
+    path: str
+    templates: dict[str, ast.Template] = field(default_factory=dict)
+    params: dict[str, ParamDecl] = field(default_factory=dict)
+    frames: list[FrameDecl] = field(default_factory=list)
+    frame_index: dict[str, int] = field(default_factory=dict)
+    declared: dict[str, SourceSpan] = field(default_factory=dict)
+    deferred: list[Deferred] = field(default_factory=list)
+    joints: dict[int, Deferred] = field(default_factory=dict)
+    measures: list[str] = field(default_factory=list)
+    files: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+    overrides: dict[str, tuple[ast.Override, Scope]] = field(default_factory=dict)
+    global_scope: Scope = field(default_factory=lambda: Scope("", None, -1))
+
+    def lookup(self, name: str, scope: Scope, span: SourceSpan) -> Lazy | ParamDecl | float:
+        """What ``name``, used in ``scope``, refers to: a local, a parameter or a constant's value.
+
+        Raises
+        ------
+        UndefinedNameError
+            Nothing visible from ``scope`` has that name (with close matches as a hint).
+        """
+        s: Scope | None = scope
+        while s is not None:
+            if name in s.locals:
+                return s.locals[name]
+            s = s.parent
+        if name in CONSTANTS:
+            return CONSTANTS[name]
+        s = scope
+        while s is not None:
+            candidate = s.join(name)
+            if candidate in self.params:
+                return self.params[candidate]
+            s = s.parent
+        if name in self.params:
+            return self.params[name]
+        raise UndefinedNameError(f"undefined name '{name}'", span, hint=suggest(name, self.visible(scope)))
+
+    def visible(self, scope: Scope) -> list[str]:
+        """The names an expression in ``scope`` may use (for suggestions)."""
+        names: list[str] = list(self.params) + list(CONSTANTS)
+        s: Scope | None = scope
+        while s is not None:
+            names.extend(s.locals)
+            if s.path:
+                names.extend(n[len(s.path) + 1 :] for n in self.params if n.startswith(s.path + "."))
+            s = s.parent
+        return names

@@ -1,0 +1,338 @@
+"""Measurement files and plans (meas_r in the seed paper): CSV and JSON.
+
+A measurement names its kind, what it refers to (a camera and a point, ...), its value(s), its
+uncertainty (σ, per-value σ, or a full covariance), and its configuration.  Files may also give
+known parameter values, globally or per configuration (a robot's joint readings in each
+attitude).  A *plan* is the same file without values: it says what will be measured.
+
+CSV (one measurement per row; columns in any order; unused cells empty; ``#`` lines are
+comments)::
+
+    id,kind,config,camera,point,u,v,sigma
+    m1,image_point,pose1,left,hand.tip,312.4,201.9,0.5
+    ,known,pose1,,,,,            <- rows of kind 'known' set parameters: columns param, value, unit
+
+JSON::
+
+    {"known": {"lever.angle": "20 deg"},
+     "configurations": {"pose1": {"arm.q1": "12.5 deg", "arm.q2": 0.1}},
+     "measurements": [
+        {"id": "m1", "kind": "image_point", "config": "pose1", "camera": "left",
+         "point": "hand.tip", "u": 312.4, "v": 201.9, "sigma": 0.5}]}
+
+Values are SI (metres, radians, pixels) unless the row gives a ``unit``.  Every problem is
+reported as ``file:line:col: message``.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mbcal.errors import MeasurementFileError, SourceSpan, suggest
+from mbcal.measurements.registry import get_model, registry
+from mbcal.measurements.sets import (
+    DEFAULT_CONFIG,
+    MAX_MEASUREMENTS,
+    Measurement,
+    MeasurementSet,
+    SetBuilder,
+    measurements_from_records,
+    merge_measurements,
+    parse_quantity,
+)
+from mbcal.outputs import atomic_write
+
+__all__ = [
+    "read_measurements",
+    "write_measurements",
+    # defined in mbcal.measurements.sets; kept here for existing importers
+    "Measurement",
+    "MeasurementSet",
+    "merge_measurements",
+    "measurements_from_records",
+    "parse_quantity",
+    "DEFAULT_CONFIG",
+    "MAX_MEASUREMENTS",
+]
+
+MAX_FILE_BYTES = 512 * 1024 * 1024
+
+
+# ---- CSV ---------------------------------------------------------------------------------------------
+
+
+def _csv_columns() -> set[str]:
+    cols = {"id", "kind", "config", "configuration", "unit", "sigma", "cov", "param", "value"}
+    for mm in registry().values():
+        cols.update(r.name for r in mm.roles)
+        cols.update(mm.values)
+        cols.update(mm.data)
+        cols.update(f"sigma_{v}" for v in mm.values)
+    return cols
+
+
+def _field_columns(line: str, n: int) -> list[int]:
+    """1-based character columns where each of n comma-separated fields starts (best effort)."""
+    cols, pos = [], 1
+    if '"' in line:
+        return [1] * n
+    for part in line.split(","):
+        cols.append(pos)
+        pos += len(part) + 1
+    return (cols + [pos] * n)[:n]
+
+
+def _read_csv(text: str, path: str, builder: SetBuilder) -> None:
+    lines = text.splitlines()
+    reader = csv.reader(io.StringIO(text))
+    header: list[str] | None = None
+    allowed = _csv_columns()
+    for row in reader:
+        line_no = reader.line_num
+        if not row or all(not c.strip() for c in row) or row[0].lstrip().startswith("#"):
+            continue
+        if header is None:
+            header = [c.strip().lower() for c in row]
+            cols = _field_columns(lines[line_no - 1] if line_no - 1 < len(lines) else "", len(header))
+            for i, name in enumerate(header):
+                if name == "configuration":
+                    header[i] = "config"
+                elif name not in allowed:
+                    raise MeasurementFileError(
+                        f"unknown column '{name}'", SourceSpan(path, line_no, cols[i]), hint=suggest(name, allowed)
+                    )
+            if "kind" not in header:
+                raise MeasurementFileError("missing column 'kind' in the header", SourceSpan(path, line_no, 1))
+            dupes = {c for c in header if header.count(c) > 1 and c}
+            if dupes:
+                raise MeasurementFileError(f"column '{sorted(dupes)[0]}' appears twice", SourceSpan(path, line_no, 1))
+            continue
+        where = SourceSpan(path, line_no, 1)
+        if len(row) > len(header):
+            extra = [c for c in row[len(header) :] if c.strip()]
+            if extra:
+                raise MeasurementFileError(f"row has {len(row)} fields but the header has {len(header)}", where)
+        record = {h: (row[i].strip() if i < len(row) else "") for i, h in enumerate(header) if h}
+        if record.get("kind", "").lower() == "known":
+            builder.known_value(record.get("param", ""), record.get("value", ""), record.get("config") or None, where)
+            continue
+        builder.add(record, where, len(builder.measurements) + 1)
+    if header is None:
+        raise MeasurementFileError("empty file: no header row", SourceSpan(path, 1, 1))
+
+
+# ---- JSON --------------------------------------------------------------------------------------------
+
+
+def _json_line_index(text: str) -> list[int]:
+    """Character offsets of the elements of the top-level "measurements" array (or top-level array)."""
+    decoder = json.JSONDecoder()
+    m = re.search(r'"measurements"\s*:\s*\[', text)
+    if m is not None:
+        pos = m.end()
+    else:
+        stripped = text.lstrip()
+        if not stripped.startswith("["):
+            return []
+        pos = text.index("[") + 1
+    offsets = []
+    try:
+        while True:
+            while pos < len(text) and text[pos] in " \t\r\n,":
+                pos += 1
+            if pos >= len(text) or text[pos] == "]":
+                break
+            offsets.append(pos)
+            _, pos = decoder.raw_decode(text, pos)
+    except ValueError:
+        return offsets
+    return offsets
+
+
+def _read_json(text: str, path: str, builder: SetBuilder) -> None:
+    try:
+        doc = json.loads(text)
+    except json.JSONDecodeError as err:
+        raise MeasurementFileError(f"invalid JSON: {err.msg}", SourceSpan(path, err.lineno, err.colno)) from None
+    if isinstance(doc, list):
+        doc = {"measurements": doc}
+    if not isinstance(doc, dict):
+        raise MeasurementFileError(
+            "the file must hold an object with 'measurements' (or a list)", SourceSpan(path, 1, 1)
+        )
+    unknown = set(doc) - {"measurements", "known", "configurations", "images", "format", "version", "model", "comment"}
+    if unknown:
+        key = sorted(unknown)[0]
+        raise MeasurementFileError(
+            f"unknown key '{key}'",
+            SourceSpan(path, 1, 1),
+            hint=suggest(key, ["measurements", "known", "configurations"]),
+        )
+    top = SourceSpan(path, 1, 1)
+    known = doc.get("known", {})
+    if not isinstance(known, dict):
+        raise MeasurementFileError("'known' must map parameter names to values", top)
+    for name, value in known.items():
+        builder.known_value(name, value, None, top)
+    configs = doc.get("configurations", {})
+    if not isinstance(configs, dict):
+        raise MeasurementFileError("'configurations' must map configuration names to {parameter: value}", top)
+    for config, values in configs.items():
+        if not isinstance(values, dict):
+            raise MeasurementFileError(f"configuration '{config}' must map parameter names to values", top)
+        builder.configurations.setdefault(str(config), {})
+        for name, value in values.items():
+            builder.known_value(name, value, str(config), top)
+    images = doc.get("images", {})
+    if not isinstance(images, dict) or not all(isinstance(v, str) for v in images.values()):
+        raise MeasurementFileError("'images' must map configuration names to image files", top)
+    base = Path(path).resolve().parent
+    builder.images = {str(k): str(base / v) for k, v in images.items()}
+    items = doc.get("measurements")
+    if not isinstance(items, list):
+        raise MeasurementFileError("'measurements' must be a list", top)
+    offsets = _json_line_index(text)
+    for i, item in enumerate(items):
+        if i < len(offsets):
+            off = offsets[i]
+            line = text.count("\n", 0, off) + 1
+            col = off - (text.rfind("\n", 0, off) + 1) + 1
+            where = SourceSpan(path, line, col)
+        else:
+            where = SourceSpan(path, 1, 1)
+        if not isinstance(item, dict):
+            raise MeasurementFileError(f"measurements[{i}] must be an object", where)
+        record = {k.lower(): v for k, v in item.items()}
+        if "configuration" in record:
+            record["config"] = record.pop("configuration")
+        builder.add(record, where, i + 1)
+
+
+def read_measurements(path: str | os.PathLike[str], model=None) -> MeasurementSet:
+    """Read a measurement file or plan (``.csv`` or ``.json``).
+
+    Parameters
+    ----------
+    path : path
+    model : Model, optional
+        Names are resolved against it (unique dotted suffixes allowed) and checked; without a
+        model they are kept as written.
+
+    Raises
+    ------
+    MeasurementFileError
+        With ``file:line:col`` for unknown names, kinds or columns, non-finite numbers, missing
+        values or columns, wrong arity, duplicate ids, bad σ or covariance.
+    """
+    p = Path(path)
+    display = str(path)
+    try:
+        size = p.stat().st_size
+    except FileNotFoundError:
+        raise MeasurementFileError(f"file not found: {display}") from None
+    except OSError as err:
+        raise MeasurementFileError(f"cannot read {display}: {err.strerror}") from None
+    if p.is_dir():
+        raise MeasurementFileError(f"{display} is a folder, not a measurement file")
+    if size > MAX_FILE_BYTES:
+        raise MeasurementFileError(f"{display} is larger than {MAX_FILE_BYTES // 2**20} MiB")
+    try:
+        text = p.read_bytes().decode("utf-8-sig")
+    except UnicodeDecodeError as err:
+        raise MeasurementFileError(
+            f"{display} is not UTF-8 text (byte {err.start})", SourceSpan(display, 1, 1)
+        ) from None
+    builder = SetBuilder(model, display)
+    suffix = p.suffix.lower()
+    if suffix == ".json":
+        _read_json(text, display, builder)
+    elif suffix in (".csv", ".txt"):
+        _read_csv(text, display, builder)
+    else:
+        raise MeasurementFileError(f"unknown measurement file type '{p.suffix}' (use .csv or .json)")
+    return builder.result()
+
+
+# ---- writing -----------------------------------------------------------------------------------------
+
+
+def _record(m: Measurement) -> dict[str, Any]:
+    mm = get_model(m.kind)
+    rec: dict[str, Any] = {"id": m.id, "kind": m.kind, "config": m.config}
+    rec.update(m.refs)
+    rec.update({k: (int(v) if k in mm.integer_data else v) for k, v in m.data.items()})
+    if m.value is not None and mm.implicit_value is None:
+        rec.update({n: float(v) for n, v in zip(mm.values, m.value)})
+    sig = m.sigma
+    off_diagonal = np.any(np.abs(m.cov - np.diag(np.diag(m.cov))) > 0)
+    if off_diagonal:
+        rec["cov"] = m.cov.tolist()
+    elif np.allclose(sig, sig[0]):
+        rec["sigma"] = float(sig[0])
+    else:
+        rec.update({f"sigma_{n}": float(s) for n, s in zip(mm.values, sig)})
+    return rec
+
+
+def write_measurements(ms: MeasurementSet, path: str | os.PathLike[str]) -> None:
+    """Write a measurement set as ``.csv`` or ``.json`` (atomically; values in SI units)."""
+    p = Path(path)
+    records = [_record(m) for m in ms.measurements]
+    if p.suffix.lower() == ".json":
+        doc: dict[str, Any] = {"format": "mbcal-measurements-1"}
+        if ms.known:
+            doc["known"] = ms.known
+        if ms.configurations:
+            doc["configurations"] = ms.configurations
+        if ms.images:
+            folder = p.resolve().parent
+            doc["images"] = {k: os.path.relpath(v, folder) for k, v in ms.images.items()}
+        doc["measurements"] = records
+        atomic_write(p, json.dumps(doc, indent=1) + "\n")
+        return
+    if p.suffix.lower() != ".csv":
+        raise MeasurementFileError(f"cannot write '{p.suffix}' measurement files (use .csv or .json)")
+    columns = ["id", "kind", "config"]
+    for r in records:
+        for k in r:
+            if k not in columns and k != "cov":
+                columns.append(k)
+    if any("cov" in r for r in records):
+        columns.append("cov")
+    if ms.known or ms.configurations:
+        for extra in ("param", "value"):
+            if extra not in columns:
+                columns.append(extra)
+    out = io.StringIO()
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(columns)
+    for name, value in ms.known.items():
+        writer.writerow(
+            [
+                "" if c not in ("kind", "param", "value") else {"kind": "known", "param": name, "value": repr(value)}[c]
+                for c in columns
+            ]
+        )
+    for config, values in ms.configurations.items():
+        for name, value in values.items():
+            row = {"kind": "known", "config": config, "param": name, "value": repr(value)}
+            writer.writerow([row.get(c, "") for c in columns])
+    for r in records:
+        cells = []
+        for c in columns:
+            v = r.get(c, "")
+            if c == "cov" and v != "":
+                v = ";".join(repr(float(x)) for x in np.ravel(v))
+            elif isinstance(v, float):
+                v = repr(v)
+            cells.append(v)
+        writer.writerow(cells)
+    atomic_write(p, out.getvalue())

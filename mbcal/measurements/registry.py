@@ -1,0 +1,91 @@
+"""The registry of measurement models: mbcal's built-ins and plugins, found the same way.
+
+Models are found through the ``mbcal.measurements`` entry-point group.  A plugin package
+declares, in its ``pyproject.toml``::
+
+    [project.entry-points."mbcal.measurements"]
+    my_kind = "my_package.module:MyModel"
+
+where ``MyModel`` follows :class:`~mbcal.measurements.protocol.MeasurementModel`.  The
+built-ins are registered that way in mbcal's own ``pyproject.toml``, and are added directly
+when mbcal runs from a source tree without installed metadata.  :func:`register` adds a model
+from Python (a notebook).  See docs/plugins.md.
+"""
+
+from __future__ import annotations
+
+import warnings
+from importlib import metadata
+
+from mbcal.errors import MeasurementFileError, suggest
+from mbcal.measurements.builtin import BUILTINS
+from mbcal.measurements.protocol import MeasurementModel
+
+__all__ = ["registry", "get_model", "register", "register_measurement_model", "ENTRY_POINT_GROUP"]
+
+ENTRY_POINT_GROUP = "mbcal.measurements"
+
+_REGISTRY: dict[str, MeasurementModel] | None = None
+_EXTRA: dict[str, MeasurementModel] = {}
+
+
+def _load() -> dict[str, MeasurementModel]:
+    found: dict[str, MeasurementModel] = {}
+    for ep in metadata.entry_points(group=ENTRY_POINT_GROUP):
+        try:
+            obj = ep.load()
+            instance = obj() if isinstance(obj, type) else obj
+            if not getattr(instance, "kind", "") or not callable(getattr(instance, "predict", None)):
+                raise TypeError("it has no 'kind' or no 'predict'")
+        except Exception as err:  # a broken plugin must not break mbcal
+            dist = getattr(ep, "dist", None)
+            origin = f" (package {dist.name})" if dist is not None else ""
+            warnings.warn(
+                f"measurement model plugin '{ep.name}'{origin} failed to load: {type(err).__name__}: {err}",
+                RuntimeWarning,
+                stacklevel=3,
+            )
+            continue
+        if instance.kind != ep.name:
+            warnings.warn(
+                f"measurement plugin entry point '{ep.name}' provides kind '{instance.kind}'; using '{instance.kind}'",
+                RuntimeWarning,
+                stacklevel=3,
+            )
+        found.setdefault(instance.kind, instance)
+    # Running from a source tree without installed metadata: the built-ins are still there.
+    for cls in BUILTINS:
+        found.setdefault(cls.kind, cls())
+    return found
+
+
+def registry(*, reload: bool = False) -> dict[str, MeasurementModel]:
+    """Every available measurement model, by kind (entry points, then programmatic ones)."""
+    global _REGISTRY
+    if _REGISTRY is None or reload:
+        _REGISTRY = _load()
+    return {**_REGISTRY, **_EXTRA}
+
+
+def register(model: MeasurementModel | type[MeasurementModel]) -> MeasurementModel:
+    """Register a measurement model from Python (without an entry point), e.g. in a notebook."""
+    instance = model() if isinstance(model, type) else model
+    if not instance.kind:
+        raise ValueError("a measurement model needs a 'kind'")
+    _EXTRA[instance.kind] = instance
+    return instance
+
+
+register_measurement_model = register
+
+
+def get_model(kind: str) -> MeasurementModel:
+    """The measurement model of a kind; a clear error listing the available ones otherwise."""
+    models = registry()
+    if kind in models:
+        return models[kind]
+    available = ", ".join(sorted(models))
+    raise MeasurementFileError(
+        f"unknown measurement kind '{kind}' (available: {available})",
+        hint=suggest(kind, models) or "plugins register kinds through the 'mbcal.measurements' entry point group",
+    )

@@ -1,0 +1,442 @@
+"""Measurements as data: :class:`Measurement`, :class:`MeasurementSet`, and building them.
+
+A measurement names its kind, what it refers to (a camera and a point, ...), its value(s) in SI
+units, its covariance, and its configuration.  A set adds known parameter values, globally or
+per configuration (a robot's joint readings in each attitude); a set without values is a
+*plan*.  :class:`SetBuilder` turns raw records (a CSV row, a JSON object, a Python dict) into
+checked measurements — :mod:`mbcal.measurements.io` reads and writes the files.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from mbcal.errors import MbcalError, MeasurementFileError, SourceSpan, suggest
+from mbcal.measurements.protocol import MeasurementModel
+from mbcal.measurements.registry import registry
+from mbcal.units import UNITS
+
+__all__ = [
+    "Measurement",
+    "MeasurementSet",
+    "SetBuilder",
+    "merge_measurements",
+    "measurements_from_records",
+    "parse_quantity",
+    "DEFAULT_CONFIG",
+    "MAX_MEASUREMENTS",
+]
+
+DEFAULT_CONFIG = "default"
+MAX_MEASUREMENTS = 2_000_000
+
+_DIMENSION_UNITS = {
+    "length": {u for u, (_, d) in UNITS.items() if d.length == 1 and d.angle == 0},
+    "angle": {u for u, (_, d) in UNITS.items() if d.angle == 1 and d.length == 0},
+    "pixel": set(),
+    "none": set(),
+}
+_PIXEL_UNITS = {"px", "pixel", "pixels"}
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """One measurement (or, in a plan, one measurement to make).
+
+    Attributes
+    ----------
+    id : str
+        Unique within its set.
+    kind : str
+        The measurement model.
+    config : str
+        The configuration it was taken in.
+    refs : dict
+        Role → full name in the model.
+    value : (size,) float or None
+        Measured values in SI units (None in a plan).
+    cov : (size, size) float
+        Covariance of the values (SI units squared).
+    data : dict
+        Extra numeric inputs of the model (``ray``; the measured point of ``point_to_surface``).
+    where : SourceSpan or None
+        Where it is in its file.
+    """
+
+    id: str
+    kind: str
+    config: str
+    refs: dict[str, str]
+    value: np.ndarray | None
+    cov: np.ndarray
+    data: dict[str, float] = field(default_factory=dict)
+    where: SourceSpan | None = field(default=None, compare=False)
+
+    @property
+    def sigma(self) -> np.ndarray:
+        """Standard deviation of each value."""
+        return np.sqrt(np.diag(self.cov))
+
+
+@dataclass
+class MeasurementSet:
+    """Measurements, known parameter values and configurations read from files.
+
+    Attributes
+    ----------
+    measurements : list of Measurement
+    known : dict
+        Known parameter values (SI) for every configuration.
+    configurations : dict
+        Configuration name → {parameter: value (SI)} known in that configuration.
+    path : str or None
+        The file it came from.
+    """
+
+    measurements: list[Measurement]
+    known: dict[str, float] = field(default_factory=dict)
+    configurations: dict[str, dict[str, float]] = field(default_factory=dict)
+    path: str | None = None
+    images: dict[str, str] = field(default_factory=dict)  # configuration → image file it was measured in
+
+    def __len__(self) -> int:
+        return len(self.measurements)
+
+    def __iter__(self):
+        return iter(self.measurements)
+
+    @property
+    def config_names(self) -> list[str]:
+        """Configurations in order: those with known values first, then as measurements name them."""
+        names = list(self.configurations)
+        for m in self.measurements:
+            if m.config not in names:
+                names.append(m.config)
+        return names or [DEFAULT_CONFIG]
+
+    @property
+    def is_plan(self) -> bool:
+        """True when no measurement has a value."""
+        return all(m.value is None for m in self.measurements)
+
+    @property
+    def kinds(self) -> list[str]:
+        return list(dict.fromkeys(m.kind for m in self.measurements))
+
+    def with_values(self, values: Sequence[np.ndarray | None]) -> MeasurementSet:
+        """A copy with new values (one array per measurement), as ``simulate`` makes."""
+        if len(values) != len(self.measurements):
+            raise ValueError("one value array per measurement is needed")
+        ms = [
+            replace(m, value=None if v is None else np.asarray(v, dtype=float))
+            for m, v in zip(self.measurements, values)
+        ]
+        return MeasurementSet(ms, dict(self.known), {k: dict(v) for k, v in self.configurations.items()}, self.path)
+
+    def subset(self, keep: Iterable[bool]) -> MeasurementSet:
+        """Only the measurements where ``keep`` is true."""
+        ms = [m for m, k in zip(self.measurements, keep) if k]
+        return MeasurementSet(
+            ms, dict(self.known), {k: dict(v) for k, v in self.configurations.items()}, self.path, dict(self.images)
+        )
+
+    def require_values(self) -> None:
+        """Raise if any measurement lacks a value (the file is a plan)."""
+        missing = [m for m in self.measurements if m.value is None]
+        if missing:
+            m = missing[0]
+            raise MeasurementFileError(
+                f"measurement '{m.id}' has no value ({len(missing)} of {len(self.measurements)} have none): "
+                "is this a measurement plan? Use 'mbcal simulate' to make measurements from a plan",
+                m.where,
+            )
+
+
+# ---- parsing helpers -------------------------------------------------------------------------------
+
+
+def parse_quantity(text: Any, where: SourceSpan | None, what: str, dimension: str | None = None) -> float:
+    """A number, or a string ``"12.5 deg"`` / ``"3cm"``, in SI units.
+
+    ``dimension`` (``length`` or ``angle``), when given, is checked against the unit.
+    """
+    if isinstance(text, bool):
+        raise MeasurementFileError(f"{what}: expected a number, got {text!r}", where)
+    if isinstance(text, (int, float)):
+        value = float(text)
+        unit = None
+    else:
+        s = str(text).strip()
+        m = re.fullmatch(
+            r"([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|[-+]?(?:nan|inf|infinity))\s*([A-Za-z]*)", s, re.I
+        )
+        if not m:
+            raise MeasurementFileError(f"{what}: expected a number (with an optional unit), got {s!r}", where)
+        value = float(m.group(1))
+        unit = m.group(2) or None
+        if unit is not None:
+            if unit not in UNITS:
+                raise MeasurementFileError(
+                    f"{what}: unknown unit '{unit}'", where, hint=suggest(unit, UNITS) or f"units: {', '.join(UNITS)}"
+                )
+            factor, dim = UNITS[unit]
+            if dimension == "length" and dim.length != 1:
+                raise MeasurementFileError(f"{what}: '{unit}' is not a length unit", where)
+            if dimension == "angle" and dim.angle != 1:
+                raise MeasurementFileError(f"{what}: '{unit}' is not an angle unit", where)
+            value *= factor
+    if not math.isfinite(value):
+        raise MeasurementFileError(f"{what}: value must be finite, got {text!r}", where)
+    return value
+
+
+def _number(text: Any, where: SourceSpan | None, what: str) -> float:
+    if isinstance(text, bool) or text is None:
+        raise MeasurementFileError(f"{what}: expected a number, got {text!r}", where)
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        raise MeasurementFileError(f"{what}: expected a number, got {text!r}", where) from None
+    if not math.isfinite(value):
+        raise MeasurementFileError(f"{what}: must be finite, got {text!r}", where)
+    return value
+
+
+def _unit_factor(unit: str | None, mm: MeasurementModel, where: SourceSpan | None) -> float:
+    if not unit:
+        return 1.0
+    dim = mm.value_dimension
+    if dim == "pixel":
+        if unit in _PIXEL_UNITS:
+            return 1.0
+        raise MeasurementFileError(f"'{mm.kind}' values are in pixels; unit '{unit}' does not apply", where)
+    if unit not in UNITS:
+        raise MeasurementFileError(f"unknown unit '{unit}'", where, hint=suggest(unit, UNITS))
+    if unit not in _DIMENSION_UNITS.get(dim, set()):
+        kind = {"length": "a length", "angle": "an angle"}.get(dim, "a plain number")
+        raise MeasurementFileError(f"'{mm.kind}' values are {kind}; unit '{unit}' does not fit", where)
+    return UNITS[unit][0]
+
+
+class SetBuilder:
+    """Turns raw records (dicts of field → text) into checked :class:`Measurement` objects."""
+
+    def __init__(self, model, path: str):
+        self.model = model
+        self.path = path
+        self.models = registry()
+        self.measurements: list[Measurement] = []
+        self.ids: dict[str, SourceSpan | None] = {}
+        self.known: dict[str, float] = {}
+        self.configurations: dict[str, dict[str, float]] = {}
+        self.images: dict[str, str] = {}
+        self.declared = set(model.measures) if model is not None else set()
+
+    def known_value(self, name: str, value: Any, config: str | None, where: SourceSpan | None) -> None:
+        if not name:
+            raise MeasurementFileError("a 'known' row needs a parameter name in column 'param'", where)
+        dimension = None
+        if self.model is not None:
+            try:
+                info = self.model.param(name)
+            except MbcalError as err:
+                raise MeasurementFileError(err.message, where, hint=err.hint) from None
+            dimension = {"m": "length", "deg": "angle"}.get(info.unit)
+            if config and not info.per_configuration:
+                raise MeasurementFileError(
+                    f"'{name}' is given for configuration '{config}' but is not declared 'per configuration' "
+                    "in the model",
+                    where,
+                )
+        v = parse_quantity(value, where, f"value of '{name}'", dimension)
+        target = self.configurations.setdefault(config, {}) if config else self.known
+        if name in target:
+            raise MeasurementFileError(
+                f"'{name}' is given twice" + (f" for configuration '{config}'" if config else ""), where
+            )
+        target[name] = v
+
+    def add(self, record: Mapping[str, Any], where: SourceSpan | None, index: int) -> None:
+        kind = str(record.get("kind") or "").strip()
+        if not kind:
+            raise MeasurementFileError("missing 'kind'", where)
+        if kind not in self.models:
+            raise MeasurementFileError(
+                f"unknown measurement kind '{kind}' (available: {', '.join(sorted(self.models))})",
+                where,
+                hint=suggest(kind, self.models),
+            )
+        if self.declared and kind not in self.declared:
+            raise MeasurementFileError(
+                f"the model declares the measurement models {', '.join(sorted(self.declared))}; '{kind}' is not one "
+                "of them",
+                where,
+                hint="add it to the model's 'measure' statement if it is meant",
+            )
+        mm = self.models[kind]
+        mid = str(record.get("id") or "").strip() or f"{kind}{index}"
+        if mid in self.ids:
+            first = self.ids[mid]
+            raise MeasurementFileError(f"duplicate id '{mid}'" + (f" (first at {first})" if first else ""), where)
+        self.ids[mid] = where
+        config = str(record.get("config") or "").strip() or DEFAULT_CONFIG
+        refs: dict[str, str] = {}
+        ref_index: dict[str, int] = {}
+        for role in mm.roles:
+            name = str(record.get(role.name) or "").strip() or role.default
+            if not name:
+                raise MeasurementFileError(f"'{kind}' needs '{role.name}' (a {role.lookup} name)", where)
+            if self.model is not None:
+                table = "frame" if role.lookup == "object" else role.lookup
+                try:
+                    full = self.model.resolve(table, name)
+                    ref_index[role.name] = (
+                        self.model.frame_index(full) if table == "frame" else self.model._lookup(table, full)
+                    )
+                except MbcalError as err:
+                    raise MeasurementFileError(f"'{role.name}': {err.message}", where, hint=err.hint) from None
+                refs[role.name] = full
+            else:
+                refs[role.name] = name
+        data: dict[str, float] = {}
+        for key in mm.data:
+            raw = record.get(key)
+            if raw is None or (isinstance(raw, str) and not raw.strip()):
+                raise MeasurementFileError(f"'{kind}' needs '{key}'", where)
+            v = _number(raw, where, f"'{key}'")
+            if key in mm.integer_data and v != int(v):
+                raise MeasurementFileError(f"'{key}' must be a whole number, got {raw!r}", where)
+            data[key] = v
+        unit = str(record.get("unit") or "").strip() or None
+        factor = _unit_factor(unit, mm, where)
+        if mm.value_dimension == "length" and mm.data and unit:  # the measured point of point_to_surface
+            data = {k: v * factor for k, v in data.items()}
+        value = self._values(record, mm, where, factor)
+        cov = self._covariance(record, mm, where, factor)
+        if self.model is not None:
+            message = mm.check(self.model, ref_index, data)
+            if message:
+                raise MeasurementFileError(message, where)
+        if len(self.measurements) >= MAX_MEASUREMENTS:
+            raise MeasurementFileError(f"more than {MAX_MEASUREMENTS} measurements", where)
+        self.measurements.append(Measurement(mid, kind, config, refs, value, cov, data, where))
+
+    def _values(self, record, mm: MeasurementModel, where, factor: float) -> np.ndarray | None:
+        if mm.implicit_value is not None:
+            return np.full(mm.size, mm.implicit_value)
+        raw: list[Any] = []
+        if "value" in record and record["value"] not in (None, "") and "value" not in mm.values:
+            listed = record["value"]
+            if not isinstance(listed, (list, tuple)):
+                listed = [listed]
+            if len(listed) != mm.size:
+                raise MeasurementFileError(
+                    f"'{mm.kind}' has {mm.size} values ({', '.join(mm.values)}), got {len(listed)}", where
+                )
+            raw = list(listed)
+        else:
+            raw = [record.get(name) for name in mm.values]
+            if len(raw) == 1 and isinstance(raw[0], (list, tuple)):
+                if len(raw[0]) != 1:
+                    raise MeasurementFileError(f"'{mm.kind}' has one value, got {len(raw[0])}", where)
+                raw = list(raw[0])
+        present = [r is not None and not (isinstance(r, str) and not r.strip()) for r in raw]
+        if not any(present):
+            return None
+        if not all(present):
+            missing = [n for n, p in zip(mm.values, present) if not p]
+            raise MeasurementFileError(
+                f"'{mm.kind}' needs all of {', '.join(mm.values)}; missing {', '.join(missing)}", where
+            )
+        return np.array([_number(r, where, f"value '{n}'") * factor for r, n in zip(raw, mm.values)])
+
+    def _covariance(self, record, mm: MeasurementModel, where, factor: float) -> np.ndarray:
+        size = mm.size
+        if record.get("cov") not in (None, ""):
+            raw = record["cov"]
+            if isinstance(raw, str):
+                raw = [p for p in re.split(r"[;\s]+", raw.strip()) if p]
+            flat = np.array([_number(v, where, "'cov'") for v in np.ravel(np.asarray(raw, dtype=object))])
+            if flat.size != size * size:
+                raise MeasurementFileError(
+                    f"'cov' must have {size}×{size} = {size * size} entries, got {flat.size}", where
+                )
+            cov = flat.reshape(size, size) * factor * factor
+            if not np.allclose(cov, cov.T, rtol=1e-9, atol=0):
+                raise MeasurementFileError("'cov' must be symmetric", where)
+            if np.any(np.linalg.eigvalsh(cov) <= 0):
+                raise MeasurementFileError("'cov' must be positive definite", where)
+            return cov
+        sigmas = []
+        common = record.get("sigma")
+        for name in mm.values:
+            raw = record.get(f"sigma_{name}")
+            if raw in (None, ""):
+                raw = common
+            if isinstance(raw, (list, tuple)):
+                raise MeasurementFileError("'sigma' is one number; use 'cov' for a matrix", where)
+            if raw in (None, ""):
+                sigmas.append(mm.default_sigma)
+                continue
+            s = _number(raw, where, "'sigma'") * factor
+            if not s > 0:
+                raise MeasurementFileError(f"sigma must be positive, got {raw!r}", where)
+            sigmas.append(s)
+        return np.diag(np.square(sigmas))
+
+    def result(self) -> MeasurementSet:
+        if not self.measurements:
+            raise MeasurementFileError("no measurements", SourceSpan(self.path, 1, 1))
+        return MeasurementSet(self.measurements, self.known, self.configurations, self.path, self.images)
+
+
+def merge_measurements(sets: Sequence[MeasurementSet]) -> MeasurementSet:
+    """One set from several files: measurements appended, known values and images merged.
+
+    Configurations with the same name are the same configuration.  Raises when two files use
+    the same measurement id or give different known values for the same parameter.
+    """
+    if len(sets) == 1:
+        return sets[0]
+    out = MeasurementSet([], {}, {}, ", ".join(s.path or "<records>" for s in sets), {})
+    ids: dict[str, SourceSpan | None] = {}
+    for ms in sets:
+        for m in ms:
+            if m.id in ids:
+                raise MeasurementFileError(f"duplicate id '{m.id}' (first at {ids[m.id]})", m.where)
+            ids[m.id] = m.where
+            out.measurements.append(m)
+        for name, value in ms.known.items():
+            if name in out.known and out.known[name] != value:
+                raise MeasurementFileError(f"'{name}' is known as {out.known[name]} and as {value} in {ms.path}")
+            out.known[name] = value
+        for config, values in ms.configurations.items():
+            target = out.configurations.setdefault(config, {})
+            for name, value in values.items():
+                if name in target and target[name] != value:
+                    raise MeasurementFileError(f"'{name}@{config}' is given two different values ({ms.path})")
+                target[name] = value
+        out.images.update(ms.images)
+    return out
+
+
+def measurements_from_records(
+    records: Iterable[Mapping[str, Any]], model=None, *, known=None, configurations=None
+) -> MeasurementSet:
+    """Build a :class:`MeasurementSet` from Python dicts shaped like the JSON records."""
+    builder = SetBuilder(model, "<records>")
+    for name, value in (known or {}).items():
+        builder.known_value(name, value, None, None)
+    for config, values in (configurations or {}).items():
+        builder.configurations.setdefault(config, {})
+        for name, value in values.items():
+            builder.known_value(name, value, config, None)
+    for i, record in enumerate(records):
+        builder.add({k.lower(): v for k, v in record.items()}, None, i + 1)
+    return builder.result()

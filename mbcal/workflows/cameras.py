@@ -1,0 +1,619 @@
+"""Camera calibration from a planar target: intrinsics, distortion and the target's pose per view.
+
+The workflow is mbcal's general calibration with a good start.  Before the Marquardt refinement,
+Zhang's closed-form method (Z. Zhang, "A flexible new technique for camera calibration", IEEE
+PAMI 22(11), 2000, section 3.1) gives initial values:
+
+1. a homography from the target plane to the image in every view (normalised DLT);
+2. the camera matrix from the homographies (two constraints per view on B = K⁻ᵀK⁻¹; with the
+   skew fixed at 0 when it is not estimated);
+3. the target's pose in every view from K⁻¹H.
+
+These initialise the model's parameters: camera intrinsics written as plain parameters
+(``fx = cam.fx``), target frames posed by ``pose(x, y, z, roll, pitch, yaw)`` of
+per-configuration parameters, and the pose of further cameras relative to the first (a stereo
+rig) from the views both see.  Distortion starts at zero.  Then every unknown is refined
+together, and the report gives what OpenCV users expect: RMS reprojection error, RMS per view,
+σ of every intrinsic (scaled by the residual variance, as OpenCV does).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.ndimage import map_coordinates
+
+from mbcal.api import calibrate
+from mbcal.errors import MbcalError
+from mbcal.geometry import transforms as geo
+from mbcal.geometry.camera import distort
+from mbcal.language import ir
+from mbcal.language.model import Model
+from mbcal.measurements.sets import MeasurementSet
+from mbcal.modeling import modeler, parameter_vector
+from mbcal.params import ParameterSet
+from mbcal.render.views import Layer, draw_overlay, load_image, save_png
+from mbcal.text import fmt, table
+
+__all__ = [
+    "homography",
+    "intrinsics_from_homographies",
+    "pose_from_homography",
+    "rpy_from_matrix",
+    "initial_values",
+    "calibrate_cameras",
+    "CameraCalibration",
+    "INTRINSIC_NAMES",
+    "DISTORTION_NAMES",
+]
+
+INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "skew")
+DISTORTION_NAMES = ("k1", "k2", "p1", "p2", "k3")
+
+
+# ---- Zhang's closed form ------------------------------------------------------------------------
+
+
+def _normalizer(p: np.ndarray) -> np.ndarray:
+    mean = p.mean(axis=0)
+    scale = math.sqrt(2.0) / max(np.mean(np.linalg.norm(p - mean, axis=1)), 1e-12)
+    return np.array([[scale, 0, -scale * mean[0]], [0, scale, -scale * mean[1]], [0, 0, 1.0]])
+
+
+def homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """H (3, 3) with dst ~ H·src for (n ≥ 4, 2) point sets (normalised DLT, Hartley's scaling)."""
+    src, dst = np.asarray(src, float), np.asarray(dst, float)
+    if len(src) < 4:
+        raise MbcalError("a homography needs at least 4 points")
+    Ts, Td = _normalizer(src), _normalizer(dst)
+    s = (np.c_[src, np.ones(len(src))] @ Ts.T)[:, :2]
+    d = (np.c_[dst, np.ones(len(dst))] @ Td.T)[:, :2]
+    rows = []
+    for (x, y), (u, v) in zip(s, d):
+        rows.append([-x, -y, -1, 0, 0, 0, u * x, u * y, u])
+        rows.append([0, 0, 0, -x, -y, -1, v * x, v * y, v])
+    _, _, Vt = np.linalg.svd(np.asarray(rows))
+    Hn = Vt[-1].reshape(3, 3)
+    H = np.linalg.inv(Td) @ Hn @ Ts
+    return H / H[2, 2]
+
+
+def _v(H: np.ndarray, i: int, j: int) -> np.ndarray:
+    h = H.T  # h[k] is column k of H
+    return np.array(
+        [
+            h[i][0] * h[j][0],
+            h[i][0] * h[j][1] + h[i][1] * h[j][0],
+            h[i][1] * h[j][1],
+            h[i][2] * h[j][0] + h[i][0] * h[j][2],
+            h[i][2] * h[j][1] + h[i][1] * h[j][2],
+            h[i][2] * h[j][2],
+        ]
+    )
+
+
+def intrinsics_from_homographies(Hs: Sequence[np.ndarray], *, skew: bool = True) -> np.ndarray:
+    """The camera matrix K from ≥ 3 plane homographies (≥ 2 with ``skew=False``)."""
+    rows: list[np.ndarray | list[int]] = []
+    for H in Hs:
+        rows.append(_v(H, 0, 1))
+        rows.append(_v(H, 0, 0) - _v(H, 1, 1))
+    if not skew:
+        rows.append([0, 1, 0, 0, 0, 0])  # B12 = 0  ⇔  γ = 0
+    if len(rows) < 5:
+        raise MbcalError(f"{len(Hs)} views are too few to initialise the camera matrix (3 needed, 2 without skew)")
+    _, _, Vt = np.linalg.svd(np.asarray(rows, float))
+    b = Vt[-1]
+    if b[0] < 0:
+        b = -b
+    B11, B12, B22, B13, B23, B33 = b
+    den = B11 * B22 - B12 * B12
+    v0 = (B12 * B13 - B11 * B23) / den
+    lam = B33 - (B13 * B13 + v0 * (B12 * B13 - B11 * B23)) / B11
+    alpha = math.sqrt(abs(lam / B11))
+    beta = math.sqrt(abs(lam * B11 / den))
+    gamma = -B12 * alpha * alpha * beta / lam
+    u0 = gamma * v0 / beta - B13 * alpha * alpha / lam
+    return np.array([[alpha, gamma, u0], [0.0, beta, v0], [0.0, 0.0, 1.0]])
+
+
+def pose_from_homography(K: np.ndarray, H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """R (3, 3) and t (3,) of a plane z = 0 in the camera frame from its homography."""
+    A = np.linalg.inv(K) @ H
+    lam = 1.0 / np.linalg.norm(A[:, 0])
+    if (lam * A[:, 2])[2] < 0:  # the target is in front of the camera
+        lam = -lam
+    r1, r2, t = lam * A[:, 0], lam * A[:, 1], lam * A[:, 2]
+    R = np.column_stack([r1, r2, np.cross(r1, r2)])
+    U, _, Vt = np.linalg.svd(R)
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        R = U @ np.diag([1, 1, -1]) @ Vt
+    return R, t
+
+
+def rpy_from_matrix(R: np.ndarray) -> tuple[float, float, float]:
+    """(roll, pitch, yaw) with R = Rz(yaw)·Ry(pitch)·Rx(roll) (URDF's convention)."""
+    pitch = math.asin(max(-1.0, min(1.0, -R[2, 0])))
+    roll = math.atan2(R[2, 1], R[2, 2])
+    yaw = math.atan2(R[1, 0], R[0, 0])
+    return roll, pitch, yaw
+
+
+def _T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return T
+
+
+# ---- mapping onto the model's parameters -----------------------------------------------------------
+
+
+def _param(node) -> str | None:
+    return node.name if isinstance(node, ir.ParamRef) else None
+
+
+def _pose_params(node) -> list[str] | None:
+    """The six parameter names of a ``pose(x, y, z, roll, pitch, yaw)`` of plain parameters."""
+    if not (isinstance(node, ir.Op) and node.op == "compose" and len(node.args) == 2):
+        return None
+    t, r = node.args
+    if not (isinstance(t, ir.Op) and t.op == "translate" and isinstance(t.args[0], ir.Op) and t.args[0].op == "vec"):
+        return None
+    if not (isinstance(r, ir.Op) and r.op == "rpy"):
+        return None
+    names = [_param(a) for a in (*t.args[0].args, *r.args)]
+    return [n for n in names if n] if all(names) else None
+
+
+def _frame_world(model: Model, X: np.ndarray, frame: int) -> np.ndarray:
+    if frame < 0:
+        return np.eye(4)
+    return np.asarray(modeler(model, X).frame_poses[frame], dtype=float)
+
+
+def _set_pose(values: dict, names: list[str], T_local: np.ndarray, suffix: str = "") -> None:
+    roll, pitch, yaw = rpy_from_matrix(T_local[:3, :3])
+    for name, v in zip(names, (*T_local[:3, 3], roll, pitch, yaw)):
+        values[name + suffix] = float(v)
+
+
+def _average_pose(Ts: list[np.ndarray]) -> np.ndarray:
+    """A mean rigid transform (chordal mean of the rotations, mean translation)."""
+    R = sum(T[:3, :3] for T in Ts)
+    U, _, Vt = np.linalg.svd(R)
+    Rm = U @ Vt
+    if np.linalg.det(Rm) < 0:
+        Rm = U @ np.diag([1, 1, -1]) @ Vt
+    return _T(Rm, np.mean([T[:3, 3] for T in Ts], axis=0))
+
+
+def initial_values(model: Model, data: MeasurementSet, unknown: Sequence[str]) -> dict[str, float]:
+    """Initial values of a camera calibration's unknowns by Zhang's method (see the module doc).
+
+    Returns ``{unknown name: value}`` for the unknowns it can initialise; the rest keep their
+    nominal values.  ``unknown`` are the expanded unknown names (``board.x@view3``).
+    """
+    unknown_set = set(unknown)
+    X0 = model.nominal
+    scene0 = modeler(model, X0)
+    frame_poses0 = np.asarray(scene0.frame_poses, dtype=float)
+    values: dict[str, float] = {}
+    # Observations: (camera, config, target frame) → (target-plane xy, pixels)
+    obs: dict[tuple[int, str, int], tuple[list, list]] = {}
+    for m in data:
+        if m.kind != "image_point" or m.value is None:
+            continue
+        p = model.points[model.point_index(m.refs["point"])]
+        if p.frame < 0:
+            continue
+        local = np.asarray(ir.evaluate(p.position, X0, {}, np), dtype=float)
+        if abs(local[2]) > 1e-9:
+            continue  # not on a planar target's z = 0 plane
+        key = (model.camera_index(m.refs["camera"]), m.config, p.frame)
+        obs.setdefault(key, ([], []))
+        obs[key][0].append(local[:2])
+        obs[key][1].append(m.value)
+    cameras = sorted({k[0] for k in obs})
+    poses: dict[tuple[int, str, int], np.ndarray] = {}  # T_camera_target per camera and view
+    for ci in cameras:
+        views = {k: (np.asarray(a), np.asarray(b)) for k, (a, b) in obs.items() if k[0] == ci and len(a) >= 4}
+        if not views:
+            continue
+        Hs = {k: homography(a, b) for k, (a, b) in views.items()}
+        info = model.cameras[ci]
+        intrinsic_names = [_param(n) for n in info.intrinsics]
+        skew = intrinsic_names[4] is not None and intrinsic_names[4] in unknown_set
+        fitted = [n for n in intrinsic_names[:4] if n is not None and n in unknown_set]
+        K = None
+        if fitted and len(Hs) >= (3 if skew else 2):
+            K = intrinsics_from_homographies(list(Hs.values()), skew=skew)
+            numbers = {
+                intrinsic_names[0]: [K[0, 0]],
+                intrinsic_names[1]: [K[1, 1]],
+                intrinsic_names[2]: [K[0, 2]],
+                intrinsic_names[3]: [K[1, 2]],
+            }
+            if skew:
+                numbers[intrinsic_names[4]] = [K[0, 1]]
+            merged: dict[str, list[float]] = {}
+            for name, v in numbers.items():
+                if name is not None:
+                    merged.setdefault(name, []).extend(v)
+            for name, v in merged.items():
+                if name in unknown_set:
+                    values[name] = float(np.mean(v))  # f = fx = fy: the mean
+        if K is None:
+            fx, fy, cx, cy, s = (float(ir.evaluate(n, X0, {}, np)) for n in info.intrinsics)
+            K = np.array([[fx, s, cx], [0, fy, cy], [0, 0, 1.0]])
+        for k, H in Hs.items():
+            R, t = pose_from_homography(K, H)
+            poses[k] = _T(R, t)
+    if not poses:
+        return values
+    reference = cameras[0]
+    T_world_ref = frame_poses0[model.cameras[reference].frame]
+    # Further cameras: their pose relative to the reference from the views both see.
+    T_ref_cam = {reference: np.eye(4)}
+    for ci in cameras[1:]:
+        shared = [(k, poses[(reference, k[1], k[2])]) for k in poses if k[0] == ci and (reference, k[1], k[2]) in poses]
+        if not shared:
+            continue
+        T_ref_cam[ci] = _average_pose([T_ref_t @ np.linalg.inv(poses[k]) for k, T_ref_t in shared])
+        frame = model.frames[model.cameras[ci].frame]
+        names = _pose_params(frame.pose) if frame.pose is not None else None
+        if names and all(n in unknown_set for n in names):
+            T_world_cam = T_world_ref @ T_ref_cam[ci]
+            parent = _frame_world(model, X0, frame.parent)
+            _set_pose(values, names, np.linalg.inv(parent) @ T_world_cam)
+    # Target poses per view, from the reference camera when it saw the view, else another one.
+    done: set[tuple[str, int]] = set()
+    for (ci, config, target), T_cam_target in sorted(poses.items(), key=lambda kv: kv[0][0] != reference):
+        if (config, target) in done or ci not in T_ref_cam:
+            continue
+        done.add((config, target))
+        frame = model.frames[target]
+        names = _pose_params(frame.pose) if frame.pose is not None else None
+        if not names:
+            continue
+        T_world_target = T_world_ref @ T_ref_cam[ci] @ T_cam_target
+        parent = _frame_world(model, X0, frame.parent)
+        suffix = f"@{config}" if any(f"{n}@{config}" in unknown_set for n in names) else ""
+        if all((n + suffix) in unknown_set for n in names):
+            _set_pose(values, names, np.linalg.inv(parent) @ T_world_target, suffix)
+    return values
+
+
+# ---- the workflow --------------------------------------------------------------------------------------
+
+
+@dataclass
+class CameraCalibration:
+    """The outcome of :func:`calibrate_cameras`: the general result plus camera-level numbers."""
+
+    result: Any  # CalibrationResult
+    initial: dict[str, float]
+    cameras: list[str]
+    intrinsics: dict[str, dict[str, tuple[float, float | None]]] = field(default_factory=dict)
+    views: list[dict[str, Any]] = field(default_factory=list)
+    rms: float = float("nan")
+
+    @property
+    def ok(self) -> bool:
+        return self.result.ok
+
+    def to_json(self) -> dict[str, Any]:
+        data = self.result.to_json()
+        data["cameras"] = {
+            cam: {k: {"value": v, "std": s} for k, (v, s) in values.items()} for cam, values in self.intrinsics.items()
+        }
+        data["views"] = self.views
+        data["rms_reprojection"] = self.rms
+        return data
+
+    def summary(self) -> str:
+        model = self.result.problem.model
+        out = [
+            f"camera calibration: {len(self.views)} views, "
+            f"{sum(v['points'] for v in self.views)} points, RMS reprojection error {self.rms:.4f} px"
+        ]
+        for cam, values in self.intrinsics.items():
+            rows = [[k, fmt(v, 8), "fixed" if s is None else fmt(s, 3)] for k, (v, s) in values.items()]
+            out.append("")
+            out.append(table(["", "value", "σ"], rows, align="lrr", title=f"camera {model.short_name('camera', cam)}:"))
+        rows = [
+            [v["config"], model.short_name("camera", v["camera"]), v["points"], f"{v['rms']:.4f}"] for v in self.views
+        ]
+        out.append("")
+        out.append(table(["view", "camera", "points", "RMS (px)"], rows, align="llrr", title="per view:"))
+        out.append("")
+        out.append(self.result.summary(max_residuals=8))
+        return "\n".join(out)
+
+
+def default_unknowns(model: Model, data: MeasurementSet) -> list[str]:
+    """Parameters with a search range, and per-configuration ones the measurements do not give."""
+    given = set(data.known)
+    for values in data.configurations.values():
+        given.update(values)
+    out = []
+    for p in model.params:
+        if p.name in given:
+            continue
+        if (p.lower is not None and p.upper is not None) or p.per_configuration:
+            out.append(p.name)
+    return out
+
+
+def calibrate_cameras(
+    model: Model,
+    data: MeasurementSet,
+    estimate: Sequence[str] | None = None,
+    *,
+    initialize: bool = True,
+    restarts: int = 4,
+    seed: int | None = 0,
+    config=None,
+    initial: Mapping[str, float] | None = None,
+    scale_covariance: bool = True,
+    progress=None,
+) -> CameraCalibration:
+    """Calibrate cameras from image points of planar targets (see the module doc).
+
+    Parameters
+    ----------
+    estimate : sequence of str, optional
+        Unknowns (default: :func:`default_unknowns`).
+    initialize : bool
+        Start from Zhang's closed-form solution (otherwise from the nominal values).
+    scale_covariance : bool
+        Scale σ by the reduced χ² (OpenCV's convention); the residuals then set the noise level.
+    """
+    estimate = list(estimate) if estimate else default_unknowns(model, data)
+    params = ParameterSet(model, estimate, configurations=data.config_names, per_configuration=data.configurations)
+    start = dict(initial_values(model, data, params.names)) if initialize else {}
+    start.update(initial or {})
+    result = calibrate(
+        model,
+        data,
+        estimate,
+        restarts=restarts,
+        seed=seed,
+        config=config,
+        initial=start,
+        scale_covariance=scale_covariance,
+        progress=progress,
+    )
+    cams = sorted({m.refs["camera"] for m in data if m.kind == "image_point"}, key=model.camera_index)
+    values = result.values
+    std = result.std
+    intrinsics: dict[str, dict[str, tuple[float, float | None]]] = {}
+    X = result.problem.params.X(result.x)[0]
+    for cam in cams:
+        info = model.cameras[model.camera_index(cam)]
+        entry: dict[str, tuple[float, float | None]] = {}
+        for label, node in zip(INTRINSIC_NAMES + DISTORTION_NAMES, info.intrinsics + info.distortion):
+            name = _param(node)
+            v = float(ir.evaluate(node, X, {}, np))
+            s = std.get(name) if name is not None and name in values else None
+            entry[label] = (v, None if s is None or not np.isfinite(s) else float(s))
+        intrinsics[cam] = entry
+    views = []
+    by_view: dict[tuple[str, str], list[np.ndarray]] = {}
+    for r in result.residuals:
+        if r.kind == "image_point":
+            by_view.setdefault((r.config, r.refs["camera"]), []).append(r.residual)
+    all_err = []
+    for (config, cam), errs in by_view.items():
+        e = np.asarray(errs)
+        all_err.append(e)
+        views.append(
+            {"config": config, "camera": cam, "points": len(e), "rms": float(np.sqrt(np.mean(np.sum(e**2, axis=1))))}
+        )
+    rms = float(np.sqrt(np.mean(np.sum(np.concatenate(all_err) ** 2, axis=1)))) if all_err else float("nan")
+    return CameraCalibration(result, start, cams, intrinsics, views, rms)
+
+
+def reprojection_images(cc: CameraCalibration, images: Mapping[str, str], out_dir, *, vector_scale: float = 10.0):
+    """Write each view's image with its measured (blue) and reprojected (red) corners."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    model = cc.result.problem.model
+    written = []
+    groups: dict[tuple[str, str], list] = {}
+    for r in cc.result.residuals:
+        if r.kind == "image_point":
+            groups.setdefault((r.config, r.refs["camera"]), []).append(r)
+    for (config, cam), rows in groups.items():
+        path = images.get(f"{config}@{cam}") or images.get(config)
+        if path is None:
+            continue
+        image = load_image(path)
+        measured = np.array([r.measured for r in rows])
+        predicted = np.array([r.predicted for r in rows])
+        layers = [
+            Layer("points", measured, (30, 80, 220), 1.2, "detected corners"),
+            Layer(
+                "vectors",
+                np.stack([predicted, predicted + vector_scale * (measured - predicted)], axis=1),
+                (230, 130, 0),
+                1.2,
+                f"reprojection error × {vector_scale:g}",
+            ),
+            Layer("points", predicted, (220, 30, 30), 0.8, "reprojected corners"),
+        ]
+        name = f"{config}_{model.short_name('camera', cam).replace('.', '_')}_reprojection.png"
+        save_png(draw_overlay(image, layers), out_dir / name)
+        written.append(out_dir / name)
+    return written
+
+
+# ---- synthetic images of targets ------------------------------------------------------------------------
+
+
+def _undistort(xy: np.ndarray, distortion: np.ndarray, iterations: int = 20) -> np.ndarray:
+    """Normalised coordinates whose distortion is ``xy`` (fixed-point iteration, as OpenCV does)."""
+    if not np.any(distortion):
+        return xy
+    guess = xy.copy()
+    for _ in range(iterations):
+        guess = guess - (distort(guess, distortion, np) - xy)
+    return guess
+
+
+def target_image(scene, camera: str, target, *, supersample: int = 3, background: int = 90) -> np.ndarray:
+    """A synthetic grey image (H, W) uint8 of a chessboard or squares target seen by a camera.
+
+    The image is made by casting every (sub)pixel through the camera's model — distortion
+    included — onto the target plane and painting the pattern found there.  It is what
+    detection is tested on, and it lets a calibration be planned and rehearsed without a camera.
+    """
+    cam = scene.camera(camera)
+    info = target
+    if info.kind not in ("chessboard", "grid", "squares"):
+        raise MbcalError(f"cannot draw a '{info.kind}' target")
+    K = np.asarray(cam.intrinsics, dtype=float)
+    fx, fy, cx, cy, skew = K
+    T_cam = np.asarray(cam.T_world_camera, dtype=float)
+    T_target = np.asarray(scene.frame_poses[info.frame], dtype=float)
+    T = np.linalg.inv(T_cam) @ T_target  # target → camera
+    pts = np.asarray(scene.points, dtype=float)
+    first = scene.model.point_index(info.points[0])
+    local = (pts[first + np.arange(len(info.points))] - T_target[:3, 3]) @ T_target[:3, :3]
+    W, H = cam.width, cam.height
+    k = supersample
+    u, v = np.meshgrid((np.arange(W * k) + 0.5) / k - 0.5, (np.arange(H * k) + 0.5) / k - 0.5)
+    distortion = np.asarray(cam.distortion, dtype=float)
+
+    def normalised(uu, vv):
+        yd = (vv - cy) / fy
+        return np.stack([(uu - cx - skew * yd) / fx, yd], axis=-1)
+
+    if np.any(distortion):
+        # Undistortion is smooth: solve it on a coarse grid and interpolate (cubic) in between.
+        step = 4.0
+        gu = np.arange(-step, W + 2 * step, step)
+        gv = np.arange(-step, H + 2 * step, step)
+        GU, GV = np.meshgrid(gu, gv)
+        coarse = _undistort(normalised(GU, GV).reshape(-1, 2), distortion).reshape(len(gv), len(gu), 2)
+        coords = np.stack([(v.ravel() - gv[0]) / step, (u.ravel() - gu[0]) / step])
+        xy = np.stack([map_coordinates(coarse[..., i], coords, order=3, mode="nearest") for i in range(2)], axis=-1)
+    else:
+        xy = normalised(u, v).reshape(-1, 2)
+    rays = np.c_[xy, np.ones(len(xy))] @ T[:3, :3]  # ray directions in the target frame
+    origin = -T[:3, :3].T @ T[:3, 3]  # camera centre in the target frame
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = -origin[2] / rays[:, 2]
+    hit = origin[None, :2] + s[:, None] * rays[:, :2]
+    valid = np.isfinite(s) & (s > 0)
+    if info.kind == "squares":
+        pitch = np.linalg.norm(local[4] - local[0]) if info.cols > 1 else np.linalg.norm(local[1] - local[0]) / 0.5
+        size = info.size_ratio * pitch
+        gx, gy = hit[:, 0] / pitch, hit[:, 1] / pitch
+        inside = (
+            (gx >= -0.5)
+            & (gx <= info.cols + 0.5 - (1 - info.size_ratio))
+            & (gy >= -0.5)
+            & (gy <= info.rows + 0.5 - (1 - info.size_ratio))
+        )
+        fx_, fy_ = gx - np.floor(gx), gy - np.floor(gy)
+        in_grid = (gx >= 0) & (gx < info.cols) & (gy >= 0) & (gy < info.rows)
+        dark = in_grid & (fx_ < size / pitch) & (fy_ < size / pitch)
+        value = np.where(inside, np.where(dark, 20, 235), background)
+    else:
+        dx = np.linalg.norm(local[1] - local[0]) if info.cols > 1 else 0.025
+        dy = np.linalg.norm(local[info.cols] - local[0]) if info.rows > 1 else dx
+        gx, gy = hit[:, 0] / dx, hit[:, 1] / dy
+        on_board = (gx >= -1) & (gx < info.cols) & (gy >= -1) & (gy < info.rows)
+        margin = (gx >= -2) & (gx < info.cols + 1) & (gy >= -2) & (gy < info.rows + 1)
+        parity = (np.floor(gx) + np.floor(gy)) % 2 == 0
+        value = np.where(on_board, np.where(parity, 20, 235), np.where(margin, 235, background))
+    value = np.where(valid, value, background).astype(float).reshape(H * k, W * k)
+    image = value.reshape(H, k, W, k).mean(axis=(1, 3))
+    return np.clip(np.round(image), 0, 255).astype(np.uint8)
+
+
+def plan_views(
+    model: Model,
+    n: int,
+    *,
+    seed: int = 0,
+    target: str | None = None,
+    camera: str | None = None,
+    distance: tuple[float, float] = (0.35, 0.6),
+    tilt_deg: float = 35.0,
+) -> dict[str, dict[str, float]]:
+    """Random poses of a target in front of a camera: ``{view: {pose parameter: value}}``.
+
+    The target frame must be posed by ``pose(x, y, z, roll, pitch, yaw)`` of per-configuration
+    parameters (as in models/camera_calibration.mdl).  Its centre is put on a random ray within
+    the middle of the image at a random distance, tilted by up to ``tilt_deg``, with its z axis
+    pointing away from the camera.
+    """
+    info = model.target(target)
+    frame = model.frames[info.frame]
+    names = _pose_params(frame.pose) if frame.pose is not None else None
+    if not names:
+        raise MbcalError(f"target '{info.name}' is not posed by pose(x, y, z, roll, pitch, yaw) of parameters")
+    cam = model.cameras[model.camera_index(camera)] if camera else model.cameras[0]
+    X0 = model.nominal
+    scene = modeler(model, X0)
+    T_world_cam = np.asarray(scene.frame_poses[cam.frame], dtype=float)
+    T_world_parent = _frame_world(model, X0, frame.parent)
+    first = model.point_index(info.points[0])
+    T_target0 = np.asarray(scene.frame_poses[info.frame], dtype=float)
+    local = (np.asarray(scene.points, float)[first : first + len(info.points)] - T_target0[:3, 3]) @ T_target0[:3, :3]
+    centre = local.mean(axis=0)
+    fx, fy, cx, cy, _ = (float(ir.evaluate(nd, X0, {}, np)) for nd in cam.intrinsics)
+    rng = np.random.default_rng(seed)
+    views = {}
+    for k in range(n):
+        u = rng.uniform(0.35, 0.65) * cam.width
+        v = rng.uniform(0.35, 0.65) * cam.height
+        z = rng.uniform(*distance)
+        c_cam = np.array([(u - cx) / fx * z, (v - cy) / fy * z, z])
+        a, b, g = np.radians(rng.uniform(-tilt_deg, tilt_deg, 3) * np.array([1, 1, 0.5]))
+        R = geo.rpy(np, a, b, g)[:3, :3]  # z away from the camera: the board faces it
+        T_cam_target = _T(R, c_cam - R @ centre)
+        T_local = np.linalg.inv(T_world_parent) @ T_world_cam @ T_cam_target
+        values: dict[str, float] = {}
+        _set_pose(values, names, T_local)
+        views[f"view{k + 1:02d}"] = values
+    return views
+
+
+def synthesize_images(
+    model: Model,
+    views: Mapping[str, Mapping[str, float]],
+    out_dir,
+    *,
+    truth: Mapping[str, float] | None = None,
+    target: str | None = None,
+    camera: str | None = None,
+    noise: float = 2.0,
+    seed: int = 0,
+) -> dict[str, str]:
+    """Draw the target in every view as a camera would see it (PNG files); ``{view: path}``.
+
+    ``truth`` sets the camera's true parameters (intrinsics, distortion, a rig's pose);
+    ``noise`` is the σ of Gaussian pixel noise (grey levels).
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    info = model.target(target)
+    cam = model.cameras[model.camera_index(camera)] if camera else model.cameras[0]
+    rng = np.random.default_rng(seed)
+    paths = {}
+    for view, pose in views.items():
+        scene = modeler(model, parameter_vector(model, {**(truth or {}), **pose}))
+        image = target_image(scene, cam.name, info).astype(float)
+        image = np.clip(image + rng.normal(0, noise, image.shape), 0, 255).astype(np.uint8)
+        path = out_dir / f"{view}.png"
+        save_png(np.repeat(image[..., None], 3, axis=2), path)
+        paths[view] = str(path)
+    return paths
