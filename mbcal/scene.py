@@ -137,7 +137,7 @@ class Scene:
         plane_size : float
             Side (m) of the square that stands for an infinite ``plane()``.
         """
-        import trimesh
+        import trimesh  # optional at import time: loaded when a scene is exported
 
         if np.ndim(self.points) != 2:
             raise ValueError("to_trimesh() needs a single scene, not a batch (index the configuration first)")

@@ -45,7 +45,7 @@ def is_constant(*values: Any) -> bool:
 def _module(*values: Any):
     if is_constant(*values):
         return np
-    import jax.numpy as jnp
+    from mbcal._jax import jnp  # lazy: JAX (in float64) only once a traced value shows up; keeps `mbcal check` light
 
     return jnp
 

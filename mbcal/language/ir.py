@@ -90,7 +90,7 @@ def evaluate(node: Node, X: Any, memo: dict[int, Any], xp: Any = None) -> Any:
         return memo[id(node)]
     if xp is None:
         # JAX is heavy: imported on the first traced evaluation, so that `mbcal check` does not pay for it.
-        import jax.numpy as jnp
+        from mbcal._jax import jnp  # float64, whatever the caller imported first
 
         xp = jnp
     return walk(node, memo, lambda n: n.value, lambda n: X[n.index], lambda name, *a: OPS[name](xp, *a))

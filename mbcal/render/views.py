@@ -11,6 +11,7 @@ mode): multisampled depth mixes the values of the surfaces that meet at an edge.
 
 from __future__ import annotations
 
+import io
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -19,7 +20,9 @@ from typing import Any
 import numpy as np
 
 from mbcal.errors import MbcalError, RenderError
+from mbcal.geometry.camera import project_camera_points
 from mbcal.geometry.shapes import get_shape, shape_mesh
+from mbcal.outputs import atomic_write
 
 __all__ = ["RenderError", "View", "render_view", "wireframe_segments", "draw_overlay", "save_png"]
 
@@ -35,7 +38,7 @@ def _headless() -> None:
 def _pyrender():
     _headless()
     try:
-        import pyrender
+        import pyrender  # optional: needs EGL/OSMesa, loaded when a view is rendered
     except Exception as err:  # missing GL libraries surface here
         raise RenderError(
             f"pyrender cannot start ({type(err).__name__}: {err})",
@@ -159,7 +162,7 @@ def _index_color(i: int) -> np.ndarray:
 
 def _feature_edges(mesh, angle_deg: float = 25.0) -> np.ndarray:
     """Edges (k, 2) of a mesh where its faces bend by more than ``angle_deg``, and its borders."""
-    import trimesh
+    import trimesh  # with pyrender: rendering's dependencies load on first use
 
     sharp = mesh.face_adjacency_edges[mesh.face_adjacency_angles > np.radians(angle_deg)]
     counts = trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1)
@@ -212,8 +215,6 @@ def _visible_samples(scene, camera: str, view: View, segments: np.ndarray, step_
     All segments are sampled and projected at once (numpy); a sample is visible when no
     surface of the rendered depth lies in front of it.
     """
-    from mbcal.geometry.camera import project_camera_points
-
     if len(segments) == 0:
         return []
     cam = scene.camera(camera)
@@ -265,10 +266,10 @@ class Layer:
 
 def _font(size: int):
     """DejaVu Sans (shipped with matplotlib) for legends; Pillow's bitmap font if it is missing."""
-    from PIL import ImageFont
+    from PIL import ImageFont  # pillow: loaded when a picture is drawn
 
     try:
-        from matplotlib import font_manager
+        from matplotlib import font_manager  # heavy: only to find a font file
 
         return ImageFont.truetype(font_manager.findfont("DejaVu Sans", fallback_to_default=True), size)
     except Exception:  # no matplotlib font: the default font lacks some symbols but works
@@ -281,7 +282,7 @@ def draw_overlay(image: np.ndarray, layers: Sequence[Layer], *, supersample: int
     Wireframe data: a list of (pixels (k, 2), visible (k,)) runs; points: (n, 2) pixels;
     vectors: (n, 2, 2) pixel pairs (from, to); labels: list of (pixel, text).
     """
-    from PIL import Image, ImageDraw
+    from PIL import Image, ImageDraw  # pillow: loaded when a picture is drawn
 
     base = Image.fromarray(np.asarray(image, dtype=np.uint8)).convert("RGB")
     W, H = base.size
@@ -356,11 +357,7 @@ def wireframe_layer(scene, camera: str, view: View, color, label: str | None = N
 
 def save_png(image, path) -> None:
     """Write a PIL image or an array as PNG, atomically."""
-    import io
-
-    from PIL import Image
-
-    from mbcal.outputs import atomic_write
+    from PIL import Image  # pillow: loaded when a picture is written
 
     if not isinstance(image, Image.Image):
         image = Image.fromarray(np.asarray(image, dtype=np.uint8))
@@ -371,7 +368,7 @@ def save_png(image, path) -> None:
 
 def load_image(path) -> np.ndarray:
     """An RGB image from a file, as (H, W, 3) uint8."""
-    from PIL import Image, UnidentifiedImageError
+    from PIL import Image, UnidentifiedImageError  # pillow: loaded when a picture is read
 
     try:
         with Image.open(path) as img:
