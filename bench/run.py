@@ -572,10 +572,23 @@ def report(results: dict, path: Path, plot: str | None) -> str:
         *notes(results),
         "",
     ]
-    text = "\n".join(lines)
+    text = keep_other_sections("\n".join(lines), path)
     from mbcal.outputs import atomic_write
 
     atomic_write(path, text)
+    return text
+
+
+# Sections other scripts write into the same page, between their markers, survive a rewrite.
+OTHER_SECTIONS = [("<!-- bench/kinematics.py: begin -->", "<!-- bench/kinematics.py: end -->")]
+
+
+def keep_other_sections(text: str, path: Path) -> str:
+    old = path.read_text(encoding="utf-8") if path.exists() else ""
+    for begin, end in OTHER_SECTIONS:
+        start, stop = old.find(begin), old.find(end)
+        if start >= 0 and stop > start:
+            text = text.rstrip("\n") + "\n\n" + old[start : stop + len(end)] + "\n"
     return text
 
 

@@ -18,6 +18,7 @@ import numpy as np
 
 from mbcal.errors import MbcalError, SolverError
 from mbcal.errors import suggest as suggest_name
+from mbcal.fit import FitConfig, assess_fit, assess_plan
 from mbcal.language.model import Model
 from mbcal.measurements.registry import get_model
 from mbcal.measurements.sets import MeasurementSet, measurements_from_records
@@ -39,6 +40,10 @@ __all__ = [
     "observe",
     "CalibrateOptions",
     "CalibrationResult",
+    "FitConfig",
+    "MAX_DENSE_UNKNOWNS",
+    "MAX_RESTARTS",
+    "MAX_SOLVER_BYTES",
     "PlanAnalysis",
     "ResidualRow",
     "RunInfo",
@@ -83,6 +88,12 @@ class CalibrateOptions:
     closed-form solution."""
     progress: Callable[[str], None] | None = None
     """Called with a short message at each step (compiling, analysing, ...)."""
+    fit: FitConfig | None = None
+    """Thresholds of the fit verdict: the χ² test's p-value threshold (default 0.001), the largest
+    condition number (see :class:`mbcal.fit.FitConfig` and docs/report.md)."""
+    accept_poor_fit: bool = False
+    """Count an inconsistent or weakly determined fit as ``ok`` (the verdict is still reported):
+    for scripts that want the estimate anyway (``--accept-poor-fit``)."""
 
     def updated(self, changes: Mapping[str, Any]) -> CalibrateOptions:
         """A copy with some fields changed; an unknown field name is an error that lists the fields."""
@@ -96,6 +107,43 @@ class CalibrateOptions:
                     + f" (options: {', '.join(names)})"
                 )
         return replace(self, **changes)
+
+
+MAX_RESTARTS = 10_000
+"""The most starting points one calibration runs: they run as one vmapped batch, and a few dozen
+are plenty (docs/reliability.md)."""
+
+MAX_DENSE_UNKNOWNS = 10_000
+"""The most unknowns of the dense solver and analysis: each restart holds an n × n normal matrix
+(10 000² × 8 bytes = 800 MB) and the analysis an SVD of the m × n Jacobian."""
+
+MAX_SOLVER_BYTES = 32 * 2**30
+"""The most memory (32 GiB) the batch's dense Jacobians and normal matrices may need, estimated as
+8 bytes × restarts × (rows × unknowns + 2 × unknowns²)."""
+
+
+def check_size(restarts: int, unknowns: int = 0, rows: int = 0) -> None:
+    """Refuse absurd problem sizes before anything is allocated (a :class:`SolverError` with a hint)."""
+    if restarts < 1:
+        raise SolverError(f"restarts must be at least 1, got {restarts}", hint="--restarts N with N ≥ 1")
+    if restarts > MAX_RESTARTS:
+        raise SolverError(
+            f"{restarts} restarts is more than mbcal runs ({MAX_RESTARTS}): they run as one batch in memory",
+            hint="a few dozen restarts are plenty (the default is 16; the CLI's 32)",
+        )
+    if unknowns > MAX_DENSE_UNKNOWNS:
+        raise SolverError(
+            f"{unknowns} unknowns is more than the dense solver handles ({MAX_DENSE_UNKNOWNS}): "
+            f"each restart would hold a {unknowns} × {unknowns} matrix ({8 * unknowns**2 / 2**30:.3g} GiB)",
+            hint="estimate fewer unknowns at once (--estimate), or fix per-configuration parameters that are known",
+        )
+    need = 8.0 * restarts * (float(rows) * unknowns + 2.0 * float(unknowns) ** 2)
+    if need > MAX_SOLVER_BYTES:
+        raise SolverError(
+            f"{restarts} restarts of {unknowns} unknowns over {rows} residual rows would need about "
+            f"{need / 2**30:.3g} GiB of dense Jacobians (the limit is {MAX_SOLVER_BYTES / 2**30:g} GiB)",
+            hint="use fewer restarts (--restarts), fewer unknowns, or fewer measurements",
+        )
 
 
 def _units(problem: Problem) -> dict[str, str]:
@@ -236,11 +284,13 @@ def calibrate(
     observability, outlier_threshold, initial, progress = o.observability, o.outlier_threshold, o.initial, o.progress
     t0 = time.perf_counter()
     say = progress or (lambda _msg: None)
+    check_size(restarts)
     problem = Problem(model, measurements, estimate, known=known, priors=priors)
     problem.check_ready()
     params = problem.params
+    check_size(restarts, params.size, problem.n_residuals)
     x_init = params.from_dict(dict(initial)) if initial else params.x0
-    starts = random_starts(x_init, params.lower, params.upper, restarts, seed)
+    starts = random_starts(x_init, params.lower, params.upper, restarts, seed, limits=params.bounds)
     config = config or SolverConfig()
     say(f"solving: {params.size} unknowns, {problem.size} residuals, {len(starts)} restarts")
     solved = least_squares(
@@ -250,6 +300,8 @@ def calibrate(
         config=config,
         size=problem.n_residuals,
         cache_key=problem.fingerprint(),
+        bounds=params.bounds,  # hard limits (None: none); issue 14
+        local=problem.local,  # rotation steps for roll-pitch-yaw orientations (None: none)
     )
     if solved.best < 0:
         raise SolverError(
@@ -265,11 +317,31 @@ def calibrate(
     m_rows = problem.n_residuals
     provisional_dof = max(m_rows - params.size, 1)
     chi2 = cost / provisional_dof if scale_covariance else 1.0
-    obs = analyze(Jm, Jp, params.names, _units(problem), unknown_scales(params), config=observability, chi2_scale=chi2)
+    obs = analyze(
+        Jm,
+        Jp,
+        params.names,
+        _units(problem),
+        unknown_scales(params),
+        config=observability,
+        chi2_scale=chi2,
+        active=solved.active_best,  # unknowns held at an active hard bound
+    )
     if suggest and not obs.observable:
         say("ranking candidate measurements")
         candidates = _candidate_rows(problem, x, _measured_keys(measurements))
         obs.suggestions = rank_candidates(obs, Jm, Jp, candidates)
+    say("judging the fit")
+    verdict = assess_fit(
+        problem,
+        problem.residual(x),
+        np.vstack([Jm, Jp]),
+        obs,
+        loss=str(config.loss),
+        config=o.fit,
+        observability=observability,
+        accept=o.accept_poor_fit,
+    )
     pts = _point_uncertainties(problem, x, obs.covariance, points, camera)
     visible = problem.visible(x)
     not_visible = [m.id for m, v in zip(measurements.measurements, visible) if not v]
@@ -286,6 +358,7 @@ def calibrate(
         elapsed=time.perf_counter() - t0,
         outlier_threshold=outlier_threshold,
         run=RunInfo(restarts, seed, config, scale_covariance, tuple(not_visible)),
+        verdict=verdict,
     )
 
 
@@ -368,14 +441,19 @@ def observe(
     points: Sequence[str] | None = None,
     camera: str | None = None,
     observability: ObservabilityConfig | None = None,
+    fit: FitConfig | None = None,
+    accept_poor_fit: bool = False,
 ) -> PlanAnalysis:
     """Analyse a plan before measuring: rank, σ per unknown, unobservable combinations, suggestions.
 
-    The Jacobian is taken at the nominal values (or ``at``).
+    The Jacobian is taken at the nominal values (or ``at``).  ``verdict`` says whether every unknown
+    would be well determined (``fit``: the condition-number limit; ``accept_poor_fit``: count a
+    weakly determined plan as ``ok``).
     """
     problem = Problem(model, plan, estimate, priors=priors)
     if problem.params.size == 0:
         raise SolverError("nothing to estimate: name the unknowns (--estimate NAME|GLOB)")
+    check_size(1, problem.params.size, problem.n_residuals)
     x = problem.params.from_dict(dict(at or {})) if at else problem.params.x0
     visible = problem.visible(x)
     Jm, Jp = _jacobian_split(problem, x)
@@ -388,4 +466,5 @@ def observe(
         obs.suggestions = rank_candidates(obs, Jm, Jp, _candidate_rows(problem, x, _measured_keys(plan)))
     pts = _point_uncertainties(problem, x, obs.covariance, points, camera)
     invisible = [m.id for m, v in zip(plan.measurements, visible) if not v]
-    return PlanAnalysis(problem, x, obs, pts, invisible)
+    verdict = assess_plan(problem, obs, config=fit, observability=observability, accept=accept_poor_fit)
+    return PlanAnalysis(problem, x, obs, pts, invisible, verdict)

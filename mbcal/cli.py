@@ -3,7 +3,8 @@
 Every command prints errors a user can cause as ``path:line:col: message`` with the source
 line and a caret, and exits with status 2 — never with a traceback.  Exit status 0 is
 success; 1 means the command ran but the result is not trustworthy (not observable, not
-converged); 130 means interrupted.
+converged, the fit inconsistent with the stated σ, or weakly determined; --accept-poor-fit
+accepts the last two); 130 means interrupted.
 """
 
 from __future__ import annotations
@@ -232,12 +233,25 @@ def _check_outputs(args, inputs) -> None:
 # ---- solve ------------------------------------------------------------------------------------------
 
 
+def _fit_config(args):
+    from mbcal.fit import FitConfig  # lazy: keeps JAX out of 'mbcal check'
+
+    threshold = getattr(args, "fit_threshold", None)
+    if threshold is None:
+        return None
+    if not 0 < threshold < 1:
+        raise MbcalError(f"--fit-threshold must lie between 0 and 1, got {threshold}")
+    return FitConfig(threshold=threshold)
+
+
 def cmd_solve(args: argparse.Namespace) -> int:
-    from mbcal.api import calibrate  # lazy: keeps JAX out of 'mbcal check'
+    from mbcal.api import calibrate, check_size  # lazy: keeps JAX out of 'mbcal check'
     from mbcal.measurements.io import read_measurements  # lazy: keeps JAX out of 'mbcal check'
     from mbcal.measurements.sets import merge_measurements  # lazy: keeps JAX out of 'mbcal check'
 
     inputs = [args.model, *args.measurements]
+    check_size(args.restarts)  # before reading anything
+    fit = _fit_config(args)
     _check_outputs(args, inputs)
     progress = Progress(not args.quiet)
     progress.step(f"reading {args.model} and {', '.join(args.measurements)}")
@@ -259,6 +273,8 @@ def cmd_solve(args: argparse.Namespace) -> int:
         scale_covariance=args.scale_covariance,
         camera=args.camera,
         outlier_threshold=args.outlier_threshold,
+        fit=fit,
+        accept_poor_fit=args.accept_poor_fit,
     )
     if args.overlay or args.plot:
         progress.step("drawing overlays and plots")
@@ -326,12 +342,18 @@ def cmd_observe(args: argparse.Namespace) -> int:
     inputs = [args.model, args.plan]
     at = parse_assignments(args.at or [])
     analysis = observe(
-        model, plan, _estimate(model, args.estimate), at=at or None, priors=not args.no_priors, camera=args.camera
+        model,
+        plan,
+        _estimate(model, args.estimate),
+        at=at or None,
+        priors=not args.no_priors,
+        camera=args.camera,
+        accept_poor_fit=args.accept_poor_fit,
     )
     if args.json:
         _write_json(analysis.to_json(), args.json, inputs)
     _say(args, analysis.summary())
-    return EXIT_OK if analysis.observability.observable_with_priors else EXIT_UNTRUSTED
+    return EXIT_OK if analysis.ok else EXIT_UNTRUSTED
 
 
 # ---- render -------------------------------------------------------------------------------------------
@@ -424,6 +446,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
 
 
 def cmd_calibrate_camera(args: argparse.Namespace) -> int:
+    from mbcal.api import check_size  # lazy: keeps JAX out of 'mbcal check'
     from mbcal.measurements.io import read_measurements  # lazy: keeps JAX out of 'mbcal check'
     from mbcal.measurements.sets import merge_measurements  # lazy: keeps JAX out of 'mbcal check'
     from mbcal.workflows.cameras import calibrate_cameras, reprojection_images  # lazy: keeps JAX out of 'mbcal check'
@@ -434,8 +457,16 @@ def cmd_calibrate_camera(args: argparse.Namespace) -> int:
     data = merge_measurements([read_measurements(path, model) for path in args.measurements])
     progress = Progress(not args.quiet)
     progress.step("initialising (Zhang's method) and refining")
+    check_size(args.restarts)
     cc = calibrate_cameras(
-        model, data, args.estimate, initialize=not args.no_init, restarts=args.restarts, seed=args.seed
+        model,
+        data,
+        args.estimate,
+        initialize=not args.no_init,
+        restarts=args.restarts,
+        seed=args.seed,
+        fit=_fit_config(args),
+        accept_poor_fit=args.accept_poor_fit,
     )
     images = dict(data.images)
     for item in args.image or []:
@@ -472,12 +503,81 @@ def cmd_demo(args: argparse.Namespace) -> int:
     )
 
 
+# ---- kinematics -----------------------------------------------------------------------------------------
+
+
+def _quantities(text: str, option: str) -> list[float]:
+    """``0,-30deg,5cm`` → SI values, units as in models; plain numbers are SI (rad, m)."""
+    out = []
+    for item in (t.strip() for t in text.split(",")):
+        value = None
+        for unit in sorted(UNITS, key=len, reverse=True):
+            if item.endswith(unit) and item[: -len(unit)].strip():
+                try:
+                    value = float(item[: -len(unit)]) * UNITS[unit][0]
+                    break
+                except ValueError:
+                    continue
+        try:
+            value = float(item) if value is None else value
+        except ValueError:
+            raise MbcalError(
+                f"{option}: '{item}' is not a number", hint=f"numbers separated by commas, units {', '.join(UNITS)}"
+            ) from None
+        if not math.isfinite(value):
+            raise MbcalError(f"{option}: values must be finite, got '{item}'")
+        out.append(value)
+    return out
+
+
+def cmd_kinematics(args: argparse.Namespace) -> int:
+    from mbcal.kinematics import Kinematics  # lazy: keeps JAX out of 'mbcal check'
+
+    _check_outputs(args, [args.model])
+    model = _load(args.model)
+    kin = Kinematics(model, args.point, chain=args.chain, values=parse_assignments(args.set or []))
+    theta = np.asarray(_quantities(args.joints, "--joints")) if args.joints else kin.theta0
+    if len(theta) != kin.n:
+        raise MbcalError(
+            f"--joints gives {len(theta)} values, but the chain has {kin.n}: {', '.join(kin.joints)}",
+            hint="name the chain with --chain, or give one value per joint",
+        )
+    ik = None
+    if args.ik:
+        target = _quantities(args.ik, "--ik")
+        if len(target) != 3:
+            raise MbcalError(f"--ik needs a position x,y,z, got {len(target)} values")
+        ik = kin.ik(target, initial=theta, restarts=args.restarts, seed=args.seed, tolerance=args.tolerance)
+    text, data = kin.report(theta, frame=args.axes, part=args.part, damping=args.damping, ik=ik)
+    if args.json:
+        _write_json(data, args.json, [args.model])
+    _say(args, text)
+    trouble = data["singular"] or (ik is not None and not ik.all_reached)
+    return EXIT_UNTRUSTED if trouble else EXIT_OK
+
+
 def _set_option(p: argparse.ArgumentParser, help: str) -> None:
     p.add_argument("--set", action="append", metavar="NAME=VALUE", help=help)
 
 
 def _quiet_option(p: argparse.ArgumentParser, help: str = "print nothing on success") -> None:
     p.add_argument("-q", "--quiet", action="store_true", help=help)
+
+
+def _verdict_options(p: argparse.ArgumentParser, *, threshold: bool = True) -> None:
+    p.add_argument(
+        "--accept-poor-fit",
+        action="store_true",
+        help="exit 0 even when the fit is inconsistent with the stated σ or weakly determined (the verdict is "
+        "still reported)",
+    )
+    if threshold:
+        p.add_argument(
+            "--fit-threshold",
+            type=float,
+            metavar="P",
+            help="the fit is inconsistent when P(χ² ≥ S) < P (default 0.001)",
+        )
 
 
 def _json_option(p: argparse.ArgumentParser, what: str = "the JSON report") -> None:
@@ -508,7 +608,14 @@ def _register_commands(sub) -> None:
         RMS, observability (rank; unobservable combinations by name; measurements that would help),
         point uncertainties across and along the line of sight, residuals worst first, restarts.
 
-        Exit status: 0 converged and observable; 1 solved but not converged or not observable;
+        The verdict: S is tested against χ² with m − n degrees of freedom at the stated σ; when
+        P(χ² ≥ S) < 0.001 (--fit-threshold) the fit is inconsistent and the report names what to
+        suspect, worst first: outlying measurements (by id; a robust loss is recommended when they
+        explain it), an object or sensor whose residuals are systematically large (a structural
+        error of the model), or σ set too small.  Weakly determined directions are named too.
+
+        Exit status: 0 converged, observable, consistent and well determined; 1 not converged, not
+        observable, inconsistent or weakly determined (--accept-poor-fit: 0 for the last two);
         2 bad input (with file:line:col).
         """,
         """
@@ -537,6 +644,7 @@ def _register_commands(sub) -> None:
         metavar="K",
         help="list measurements whose residual exceeds K σ (default 3)",
     )
+    _verdict_options(p)
     _json_option(p)
     p.add_argument("--write-model", metavar="OUT.mdl", help="write the calibrated model (the input is untouched)")
     p.add_argument("--overlay", metavar="DIR", help="write before/after overlay images (PNG) into DIR")
@@ -587,7 +695,8 @@ def _register_commands(sub) -> None:
         Analyse a measurement plan at the nominal values (or --at): the rank of the measurement
         Jacobian, the σ each unknown would get, the combinations that cannot be observed (by name),
         and the additional measurements that would help most.  Exit status 1 when something is
-        unobservable.
+        unobservable or weakly determined (a direction whose σ exceeds half its search range, or a
+        condition number above 1e10; --accept-poor-fit accepts the latter).
         """,
         "mbcal observe models/arm7.mdl measurements/arm_plan.json --estimate 'arm.offset*'",
         cmd_observe,
@@ -596,6 +705,7 @@ def _register_commands(sub) -> None:
     p.add_argument("plan", metavar="PLAN")
     _add_solver_options(p)
     p.add_argument("--at", action="append", metavar="NAME=VALUE", help="analyse at this value instead of nominal")
+    _verdict_options(p, threshold=False)
     _json_option(p, "the analysis as JSON")
     _quiet_option(p)
 
@@ -674,7 +784,9 @@ def _register_commands(sub) -> None:
         camera's pose — start from Zhang's closed-form solution and are refined together.  The
         report gives the RMS reprojection error, the RMS per view, σ of every intrinsic (scaled by
         the residual variance, as OpenCV does) and the full calibration report; --overlay draws the
-        detected and reprojected corners on every image.
+        detected and reprojected corners on every image.  Exit status 1 when the fit is inconsistent
+        with the corners' σ or a direction is weakly determined (too few or too similar views);
+        --accept-poor-fit reports it and exits 0.
         """,
         """
         mbcal calibrate-camera models/camera_calibration.mdl corners.json --overlay reprojection/ --json cam.json
@@ -694,6 +806,7 @@ def _register_commands(sub) -> None:
     p.add_argument("--no-init", action="store_true", help="start from the model's nominal values, not Zhang's method")
     p.add_argument("--image", action="append", metavar="CONFIG=PATH", help="the image of a view, for --overlay")
     p.add_argument("--overlay", metavar="DIR", help="write each image with its detected and reprojected corners")
+    _verdict_options(p)
     _json_option(p)
     p.add_argument("--write-model", metavar="OUT.mdl", help="write the calibrated model")
     _quiet_option(p)
@@ -716,6 +829,58 @@ def _register_commands(sub) -> None:
     p.add_argument("--restarts", type=int, default=32, metavar="N")
     p.add_argument("--seed", type=int, default=0, metavar="S")
     _quiet_option(p)
+
+    p = _add(
+        sub,
+        "kinematics",
+        "f(θ), J and J* of a point or frame for given joint values; inverse kinematics",
+        """
+        The seed's kinematics model (eqs. 5-7) from any model, at its nominal values or those given
+        with --set (calibrated offsets, say): the world pose x = f(θ) of a point or frame for the
+        joint values θ of a chain, the Jacobian J = df/dθ (rows vx vy vz wx wy wz), J* = Jᵀ(JJᵀ)⁻¹
+        and the manipulability.  With --ik: the joint values that put the point at a target
+        (Marquardt from random starts within the joint limits), or, when it is out of reach, the
+        closest pose found and its distance.
+
+        Joint values and targets take units (30deg, 5cm); plain numbers are SI (rad, m).  Write
+        --joints=-0.5,... when the first value is negative.
+        Exit status: 0 ok; 1 a target out of reach, or J* not finite (singular: give --damping);
+        2 bad input.
+        """,
+        """
+        mbcal kinematics models/arm7.mdl --chain 'arm.q*' --point hand.tip \\
+            --joints 0,-30deg,0,-60deg,0,20deg,0 --ik 0.3,-0.35,0.95
+        """,
+        cmd_kinematics,
+    )
+    p.add_argument("model", metavar="MODEL", help="model file (.mdl or .urdf)")
+    p.add_argument("--point", required=True, metavar="NAME", help="the point or frame (a unique dotted suffix will do)")
+    p.add_argument(
+        "--chain",
+        metavar="NAMES",
+        help="the joint variables, comma-separated: parameter names, globs ('arm.q*') or frames with a joint; "
+        "default: every joint between the world and the point",
+    )
+    p.add_argument(
+        "--joints", metavar="Q1,Q2,...", help="joint values in chain order (30deg, 0.1); default: the model's values"
+    )
+    _set_option(p, "another parameter's value (arm.offset1=2deg); repeatable")
+    p.add_argument("--axes", choices=["world", "local"], default="world", help="axes of J's rows (default world)")
+    p.add_argument(
+        "--part",
+        choices=["position", "orientation", "full"],
+        default="position",
+        help="rows of J that J* and the manipulability use (default position: the seed's endpoint x)",
+    )
+    p.add_argument("--damping", type=float, default=0.0, metavar="λ", help="damped J* = Jᵀ(JJᵀ + λ²I)⁻¹ (default 0)")
+    p.add_argument("--ik", metavar="X,Y,Z", help="a target position in the world: solve for the joint values")
+    p.add_argument("--restarts", type=int, default=16, metavar="N", help="IK starts (default 16)")
+    p.add_argument("--seed", type=int, default=0, metavar="S", help="seed of the IK starts (default 0)")
+    p.add_argument(
+        "--tolerance", type=float, default=1e-6, metavar="M", help="IK: reached within M metres (default 1e-6)"
+    )
+    _json_option(p, "the result as JSON")
+    _quiet_option(p, "print nothing (use the exit status, --json)")
 
 
 # ---- the parser ---------------------------------------------------------------------------------

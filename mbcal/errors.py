@@ -33,6 +33,8 @@ __all__ = [
     "UrdfError",
     "OutputError",
     "RenderError",
+    "KinematicsError",
+    "UnreachableError",
     "suggest",
     "remember_source",
 ]
@@ -185,6 +187,18 @@ class OutputError(MbcalError):
 
 class RenderError(MbcalError):
     """Headless rendering is not available (no EGL/OSMesa) or failed."""
+
+
+class KinematicsError(MbcalError):
+    """A kinematic chain cannot be set up or evaluated (a joint that does not move the target, a
+    joint vector of the wrong length, ...)."""
+
+
+class UnreachableError(KinematicsError):
+    """Inverse kinematics found no joint values within the tolerance: the message names each target
+    out of reach, the closest pose found and its distance."""
+
+    exit_code = 1
 
 
 def suggest(name: str, candidates: Iterable[str], n: int = 3) -> str | None:

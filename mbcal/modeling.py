@@ -6,7 +6,7 @@ differentiated (``jax.jacfwd``) and batched over configurations (``jax.vmap``).
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -23,7 +23,7 @@ from mbcal.scene import Scene
 
 Array = Any
 
-__all__ = ["modeler", "parameter_vector", "Needs"]
+__all__ = ["modeler", "parameter_vector", "Needs", "RpyTriple", "rpy_triples"]
 
 
 def parameter_vector(model: Model, values: Mapping[str, float] | None = None) -> np.ndarray:
@@ -93,7 +93,95 @@ def _frames_needed(model: Model, needs: Needs) -> set[int]:
     return out
 
 
-def modeler(model: Model, X: Array | Mapping[str, float], needs: Needs | None = None) -> Scene:
+@dataclass(frozen=True, eq=False)
+class RpyTriple:
+    """Three parameters that are only ever used together, as the angles of ``rpy(roll, pitch, yaw)``
+    (also inside ``pose(...)``): their orientation can be stepped as a rotation (see
+    :func:`rpy_triples`).
+
+    Attributes
+    ----------
+    params : (int, int, int)
+        Positions in X of roll, pitch and yaw.
+    nodes : tuple of Op
+        The ``rpy`` nodes of the model's graphs that read them.
+    """
+
+    params: tuple[int, int, int]
+    nodes: tuple[ir.Op, ...]
+
+
+def _roots(model: Model) -> Iterator[ir.Node]:
+    """Every expression graph the modeler evaluates."""
+    for f in model.frames:
+        if f.pose is not None:
+            yield f.pose
+        if f.joint is not None:
+            yield from (n for n in (f.joint.axis, f.joint.q, f.joint.offset) if n is not None)
+    for p in model.points:
+        yield p.position
+    for c in model.cameras:
+        yield from c.intrinsics
+        yield from c.distortion
+    for sh in model.shapes:
+        yield from sh.dims
+        if sh.pose is not None:
+            yield sh.pose
+
+
+def _rpy_angles(node: ir.Op | None) -> tuple[int, ...] | None:
+    """The parameters of ``rpy(a, b, c)`` when its arguments are three distinct parameters."""
+    if node is None or node.op != "rpy":
+        return None
+    key = tuple(a.index for a in node.args if isinstance(a, ir.ParamRef))
+    return key if len(key) == 3 and len(set(key)) == 3 else None
+
+
+def rpy_triples(model: Model) -> list[RpyTriple]:
+    """The roll-pitch-yaw triples of a model: three distinct parameters that appear as the three
+    arguments of ``rpy`` (or the angles of ``pose``), each a parameter by itself, and nowhere
+    else in the model.
+
+    Such an orientation can be parameterised by a rotation instead of its angles without
+    changing anything else: :func:`modeler` then takes the rotation through ``replace``.
+    """
+    uses: dict[int, list[tuple[ir.Op | None, int]]] = {}
+    seen: set[int] = set()
+    stack = list(_roots(model))
+    for root in stack:
+        if isinstance(root, ir.ParamRef):
+            uses.setdefault(root.index, []).append((None, -1))  # a parameter used as it is
+    while stack:
+        node = stack.pop()
+        if id(node) in seen:
+            continue
+        seen.add(id(node))
+        if isinstance(node, ir.Op):
+            for position, arg in enumerate(node.args):
+                if isinstance(arg, ir.ParamRef):
+                    uses.setdefault(arg.index, []).append((node, position))
+                stack.append(arg)
+    found: dict[tuple[int, ...], list[ir.Op]] = {}
+    for entries in uses.values():
+        for user, _ in entries:
+            key = _rpy_angles(user)
+            if key is not None and user is not None and user not in found.get(key, []):
+                found.setdefault(key, []).append(user)
+    triples = []
+    for key, nodes in found.items():
+        # Each angle is used only as that argument of rpy nodes of the same three parameters.
+        if all(_rpy_angles(n) == key and pos == k for k, i in enumerate(key) for n, pos in uses[i]):
+            triples.append(RpyTriple((key[0], key[1], key[2]), tuple(nodes)))
+    return sorted(triples, key=lambda t: t.params)
+
+
+def modeler(
+    model: Model,
+    X: Array | Mapping[str, float],
+    needs: Needs | None = None,
+    *,
+    replace: Mapping[ir.Node, Any] | None = None,
+) -> Scene:
     """Build the scene for parameter values ``X``.
 
     Parameters
@@ -106,6 +194,10 @@ def modeler(model: Model, X: Array | Mapping[str, float], needs: Needs | None = 
     needs : Needs, optional
         Compute only these frames, points, cameras and shapes (and the frames they hang from);
         the rest of the scene holds constants.  Default: everything.
+    replace : mapping, optional
+        Values (structure-of-arrays form, :mod:`mbcal.language.soa_math`) that stand in for
+        nodes of the model's graphs: the solver's rotation step gives the rotation of an
+        ``rpy`` node (see :func:`rpy_triples`) directly, without its angles.
 
     Returns
     -------
@@ -120,7 +212,7 @@ def modeler(model: Model, X: Array | Mapping[str, float], needs: Needs | None = 
             f"modeler: X must have one value per parameter ({len(model.params)}), got shape {jnp.shape(X)}"
         )
     needs = needs or Needs.everything()
-    memo: dict[int, Any] = {}
+    memo: dict[int, Any] = {id(node): value for node, value in (replace or {}).items()}
 
     def ev(node: ir.Node):
         return soa.evaluate(node, X, memo)

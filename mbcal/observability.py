@@ -7,6 +7,12 @@ parameter names; (JᵀJ)⁻¹ on the observable subspace is the covariance of th
 decisions are made on J with its columns scaled by each unknown's natural scale (half its
 search range, else its prior σ, else one SI unit or its nominal magnitude), so metres and
 radians, pixels and focal lengths are compared fairly.
+
+An unknown held at an *active* hard bound (the solver's ``active``: on a limit, with the data
+pushing it further out) is determined by the bound, not by the measurements: the analysis treats
+it as fixed — rank, condition, the named combinations and the covariance are those of the other
+unknowns with it held, its σ is 0 and its rows and columns of the covariance are 0 (NaN
+correlations) — and :attr:`Observability.active_bounds` names it.
 """
 
 from __future__ import annotations
@@ -134,29 +140,43 @@ class Observability:
     suggestions: list[Suggestion] = field(default_factory=list)
     null_space: np.ndarray | None = None  # (n, k) scaled
     n_values: int | None = None  # measured values (rows of the measurement Jacobian)
+    active_bounds: dict[str, str] = field(default_factory=dict)  # unknown → "lower" | "upper", held fixed
 
     @property
     def n(self) -> int:
         return len(self.names)
 
     @property
+    def n_free(self) -> int:
+        """Unknowns not held at an active bound: what the rank is compared with."""
+        return self.n - len(self.active_bounds)
+
+    @property
+    def fixed(self) -> np.ndarray:
+        """(n,) bool: held at an active bound."""
+        return np.array([name in self.active_bounds for name in self.names], dtype=bool)
+
+    @property
     def observable(self) -> bool:
-        """True when the measurements alone determine every unknown."""
-        return self.rank == self.n
+        """True when the measurements alone determine every unknown (those at an active bound
+        are determined by it)."""
+        return self.rank == self.n_free
 
     @property
     def observable_with_priors(self) -> bool:
-        return self.rank_with_priors == self.n
+        return self.rank_with_priors == self.n_free
 
     def verdict(self) -> str:
+        free = self.n_free
+        held = f" free ({len(self.active_bounds)} held at an active bound)" if self.active_bounds else ""
         if self.observable:
-            text = f"observable: rank {self.rank} of {self.n}, condition number {self.condition:.3g}"
+            text = f"observable: rank {self.rank} of {free}{held}, condition number {self.condition:.3g}"
             if self.weak:
                 text += f"; {len(self.weak)} weakly observable direction(s)"
             return text
-        text = f"NOT observable: rank {self.rank} of {self.n} ({self.n - self.rank} unobservable direction(s))"
-        if self.n_values is not None and self.n_values < self.n:
-            text += f"; underdetermined: {self.n_values} measured values for {self.n} unknowns"
+        text = f"NOT observable: rank {self.rank} of {free}{held} ({free - self.rank} unobservable direction(s))"
+        if self.n_values is not None and self.n_values < free:
+            text += f"; underdetermined: {self.n_values} measured values for {free} unknowns"
         if self.observable_with_priors:
             text += "; the priors (sigma) make the estimate determined"
         return text
@@ -227,6 +247,7 @@ def analyze(
     *,
     config: ObservabilityConfig | None = None,
     chi2_scale: float = 1.0,
+    active: np.ndarray | None = None,
 ) -> Observability:
     """Observability and covariance from whitened Jacobians.
 
@@ -240,7 +261,12 @@ def analyze(
         The unknowns, their display units and natural scales.
     chi2_scale : float
         Multiply the covariance by this (the reduced χ², when asked to).
+    active : (n,) int, optional
+        The solver's active bounds (−1 lower, +1 upper, 0 free): those unknowns are held fixed
+        (see the module's documentation).
     """
+    if active is not None and np.any(np.asarray(active) != 0):
+        return _held_at_bounds(J_measurements, J_priors, names, units, scales, config, chi2_scale, np.asarray(active))
     config = config or ObservabilityConfig()
     n = len(names)
     S = np.asarray(scales, dtype=float)
@@ -295,6 +321,60 @@ def analyze(
     )
 
 
+def _held_at_bounds(
+    J_measurements: np.ndarray,
+    J_priors: np.ndarray | None,
+    names: Sequence[str],
+    units: dict[str, str],
+    scales: np.ndarray,
+    config: ObservabilityConfig | None,
+    chi2_scale: float,
+    active: np.ndarray,
+) -> Observability:
+    """:func:`analyze` with the unknowns at active bounds held fixed: the analysis of the free
+    columns, embedded back (σ 0, covariance rows and columns 0, correlations NaN)."""
+    free = active == 0
+    n = len(names)
+    Jm = np.asarray(J_measurements, dtype=float)
+    Jp = None if J_priors is None else np.asarray(J_priors, dtype=float)[:, free]
+    inner = analyze(
+        Jm[:, free],
+        Jp,
+        [name for name, f in zip(names, free) if f],
+        units,
+        np.asarray(scales, dtype=float)[free],
+        config=config,
+        chi2_scale=chi2_scale,
+    )
+    cov = np.zeros((n, n))
+    cov[np.ix_(free, free)] = inner.covariance
+    corr = np.full((n, n), np.nan)
+    corr[np.ix_(free, free)] = inner.correlation
+    std = np.zeros(n)
+    std[free] = inner.std
+    inner_null = inner.null_space if inner.null_space is not None else np.zeros((int(free.sum()), 0))
+    null = np.zeros((n, inner_null.shape[1]))
+    null[free] = inner_null
+    return Observability(
+        names=list(names),
+        units=units,
+        scales=np.asarray(scales, dtype=float),
+        singular_values=inner.singular_values,
+        rank=inner.rank,
+        rank_with_priors=inner.rank_with_priors,
+        condition=inner.condition,
+        unobservable=inner.unobservable,
+        weak=inner.weak,
+        covariance=cov,
+        std=std,
+        correlation=corr,
+        chi2_scale=chi2_scale,
+        null_space=null,
+        n_values=inner.n_values,
+        active_bounds={name: ("lower" if a < 0 else "upper") for name, a in zip(names, active) if a != 0},
+    )
+
+
 def rank_candidates(
     obs: Observability,
     J_measurements: np.ndarray,
@@ -308,6 +388,8 @@ def rank_candidates(
     ``candidates`` holds (record, whitened Jacobian rows (s, n)) pairs.
     """
     S = obs.scales
+    if obs.active_bounds:
+        S = np.where(obs.fixed, 0.0, S)  # held at a bound: no measurement can help
     Js = np.asarray(J_measurements) * S
     P = np.asarray(J_priors) * S if J_priors is not None and len(J_priors) else np.zeros((0, len(S)))
     info = Js.T @ Js + P.T @ P

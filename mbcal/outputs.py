@@ -3,20 +3,51 @@
 Every file mbcal writes goes through :func:`atomic_write`: the data goes to a temporary file
 in the target's folder, is flushed to disk, and then renamed over the target in one step, so a
 crash or Ctrl-C leaves either the old file or the complete new one — never a partial file.
-Inputs are protected: :func:`check_output` refuses to write over a file the command reads.
+The file gets the permissions an ordinary write would give it: a new file those of the user's
+umask (0644 under umask 022, 0600 under 077), a replaced file its old ones — not the 0600 of
+the temporary file.  Inputs are protected: :func:`check_output` refuses to write over a file the
+command reads.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import stat
 import tempfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 from mbcal.errors import OutputError
 
-__all__ = ["atomic_write", "atomic_writer", "check_output", "OutputError"]
+__all__ = ["atomic_write", "atomic_writer", "check_output", "current_umask", "OutputError"]
+
+
+def current_umask() -> int:
+    """The process's umask: read from /proc where the system has it (nothing changes), else set and
+    restored at once."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as status:
+            for line in status:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def _mode_for(target: Path) -> int:
+    """Permission bits of a file written to ``target``: kept when it replaces a file, else 0666
+    less the umask (what ``open(target, "w")`` gives)."""
+    try:
+        existing = os.stat(target)
+    except OSError:
+        return 0o666 & ~current_umask()
+    if stat.S_ISREG(existing.st_mode):
+        return stat.S_IMODE(existing.st_mode)
+    return 0o666 & ~current_umask()
 
 
 def check_output(
@@ -46,7 +77,11 @@ def check_output(
 
 @contextlib.contextmanager
 def atomic_writer(path: str | os.PathLike[str], mode: str = "wb") -> Iterator:
-    """Open a temporary file that replaces ``path`` only when the block finishes without error."""
+    """Open a temporary file that replaces ``path`` only when the block finishes without error.
+
+    The temporary file lies in the target's folder (so the rename is atomic), is flushed to disk,
+    gets the target's permissions (see the module doc) and is renamed over the target.
+    """
     target = Path(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part", dir=target.resolve().parent)
     try:
@@ -55,6 +90,7 @@ def atomic_writer(path: str | os.PathLike[str], mode: str = "wb") -> Iterator:
             yield handle
             handle.flush()
             os.fsync(handle.fileno())
+        os.chmod(tmp, _mode_for(target))
         os.replace(tmp, target)
     except BaseException:
         with contextlib.suppress(OSError):

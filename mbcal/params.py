@@ -58,6 +58,12 @@ class Unknown:
     def sigma(self) -> float | None:
         return self.param.sigma
 
+    @property
+    def limits(self) -> tuple[float, float]:
+        """The hard limits (−inf, inf where the model gives none); a per-configuration copy has its parameter's."""
+        lo, hi = self.param.limit_lower, self.param.limit_upper
+        return (-np.inf if lo is None else lo, np.inf if hi is None else hi)
+
 
 class ParameterSet:
     """The split of a model's parameters into unknown x and known p.
@@ -201,13 +207,35 @@ class ParameterSet:
 
     @property
     def lower(self) -> np.ndarray:
-        """Lower ends of the search ranges (nan where none is declared)."""
+        """Lower ends of the search ranges (nan where none is declared); the hard limits are
+        :attr:`limit_lower` and :attr:`limit_upper`."""
         return np.array([np.nan if u.lower is None else u.lower for u in self.unknowns], dtype=float)
 
     @property
     def upper(self) -> np.ndarray:
         """Upper ends of the search ranges (nan where none is declared)."""
         return np.array([np.nan if u.upper is None else u.upper for u in self.unknowns], dtype=float)
+
+    @property
+    def limit_lower(self) -> np.ndarray:
+        """Hard lower limits of the unknowns (−inf where none): the solver never goes below them."""
+        return np.array([u.limits[0] for u in self.unknowns], dtype=float)
+
+    @property
+    def limit_upper(self) -> np.ndarray:
+        """Hard upper limits of the unknowns (inf where none)."""
+        return np.array([u.limits[1] for u in self.unknowns], dtype=float)
+
+    @property
+    def bounded(self) -> bool:
+        """Whether any unknown has a hard limit."""
+        return any(u.param.limited for u in self.unknowns)
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(limit_lower, limit_upper)`` for :func:`mbcal.solver.least_squares`, or None when no
+        unknown has a limit (the solver then runs exactly as without bounds)."""
+        return (self.limit_lower, self.limit_upper) if self.bounded else None
 
     @property
     def prior_sigma(self) -> np.ndarray:

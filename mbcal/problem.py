@@ -5,6 +5,11 @@ unknowns into one parameter row per configuration, the modeler builds one scene 
 configuration (vmapped), and every measurement model predicts its measurements from the
 stacked scenes.  The residual is ``r = W^½ (h − y)`` with W the inverse covariance of each
 measurement, followed by one row ``(x_j − nominal_j) / σ_j`` per unknown with a prior σ.
+
+Orientations whose roll, pitch and yaw are all unknown (:func:`mbcal.modeling.rpy_triples`)
+also get a local parameterisation for the solver (:attr:`Problem.local`): the rotation
+R(rpy₀)·exp([δ]×) with a rotation vector δ about the current orientation, which has no gimbal
+lock; after each step the angles are read back from the rotation.
 """
 
 from __future__ import annotations
@@ -19,17 +24,18 @@ from mbcal._jax import jax, jnp
 from mbcal.cache import Hasher, code_fingerprint, enable_compilation_cache
 from mbcal.errors import SolverError
 from mbcal.geometry.shapes import runtime_shapes
+from mbcal.language import soa_math as sm
 from mbcal.language.functions import runtime_functions
 from mbcal.language.model import Model
 from mbcal.measurements.protocol import Batch, MeasurementModel
 from mbcal.measurements.registry import get_model
 from mbcal.measurements.sets import MeasurementSet
-from mbcal.modeling import Needs, modeler
+from mbcal.modeling import Needs, RpyTriple, modeler, rpy_triples
 from mbcal.params import ParameterSet
 
 Array = Any
 
-__all__ = ["Problem", "Group"]
+__all__ = ["Problem", "Group", "OrientationSteps"]
 
 
 @dataclass(frozen=True)
@@ -129,6 +135,9 @@ class Problem:
         self.prior_index = np.nonzero(np.isfinite(sigma))[0] if priors else np.zeros(0, dtype=np.int64)
         self.prior_sigma = sigma[self.prior_index]
         self.prior_mean = self.params.prior_mean[self.prior_index]
+        self.orientations = self._orientations()
+        # The solver's rotation step for them (None: no such orientation, plain steps only).
+        self.local: OrientationSteps | None = OrientationSteps(self) if self.orientations else None
         enable_compilation_cache()
         self._fun = self._make_residual()
         self._predict_jit = jax.jit(self._predict)
@@ -137,6 +146,37 @@ class Problem:
         self._visible_jit = jax.jit(self._visible)
         self._origins_jit = jax.jit(lambda x, known: self.scenes(x, known, Needs.everything()).frame_poses[..., :3, 3])
         self._point_cache: dict[Any, Any] = {}
+
+    def _orientations(self) -> list[tuple[RpyTriple, np.ndarray]]:
+        """The roll-pitch-yaw triples stepped as rotations, each with the positions (k, 3) of its
+        unknowns in x (one row per configuration for a per-configuration orientation).
+
+        A triple qualifies when its three angles are unknown together (in the same
+        configurations, all per configuration or all not), none has hard limits, and none has a
+        prior σ in use: limits and priors act on the angles themselves, so those orientations
+        keep plain steps.
+        """
+        source = self.params._source  # (C, n_params): position in x, -1 when known
+        out = []
+        for triple in rpy_triples(self.model):
+            infos = [self.model.params[i] for i in triple.params]
+            if any(p.limited for p in infos) or (len(self.prior_index) and any(p.sigma is not None for p in infos)):
+                continue
+            columns = source[:, list(triple.params)]
+            unknown = columns >= 0
+            if not unknown.any() or not np.all(unknown.all(axis=1) | ~unknown.any(axis=1)):
+                continue
+            positions = np.unique(columns[unknown.all(axis=1)], axis=0)
+            if len(np.unique(positions)) != positions.size:
+                continue  # per configuration and global angles mixed: one unknown in several rotations
+            out.append((triple, positions.astype(np.int64)))
+        return out
+
+    @property
+    def orientation_names(self) -> list[tuple[str, str, str]]:
+        """The unknowns (roll, pitch, yaw) that the solver steps as rotations (see :attr:`local`)."""
+        names = self.params.names
+        return [tuple(names[j] for j in row) for _, positions in self.orientations for row in positions]  # type: ignore[misc]
 
     # ---- values ---------------------------------------------------------------------------------
 
@@ -278,8 +318,126 @@ class Problem:
         h.add(self.prior_index, self.prior_sigma, self.prior_mean, self.params.known.shape)
         return h.hexdigest()
 
+    def local_residual(self, x: Array, d: Array, y: Array, known: Array) -> Array:
+        """r(x ⊞ d): the residual with every qualifying orientation rotated by exp([δ]×) about its
+        current value, δ the entries of d at its angles; the other unknowns are x + d."""
+        additive = np.ones(self.params.size)
+        for _, positions in self.orientations:
+            additive[positions.ravel()] = 0.0
+        x_eff = x + d * additive
+        rows, configs = self.params.views(x_eff, known)
+        zero_row = jnp.zeros_like(rows[0])
+
+        def scene(row, c):
+            base = self.params.view(x, row, c)
+            step = self.params.view(d, zero_row, c)
+            replace: dict[Any, Any] = {}
+            for triple, _ in self.orientations:
+                a, b, k = triple.params
+                R0, _t = sm.rpy(base[a], base[b], base[k])
+                rotation = (sm.matmul3(R0, sm.rotation_vector((step[a], step[b], step[k]))), sm.ZERO3)
+                for node in triple.nodes:
+                    replace[node] = rotation
+            return modeler(self.model, self.params.view(x_eff, row, c), self.needs, replace=replace)
+
+        scenes = jax.vmap(scene)(rows, configs)
+        parts = [jnp.reshape(g.model.predict(scenes, g.batch), (-1,)) for g in self.groups]
+        r = self._whitened(jnp.concatenate(parts) if parts else jnp.zeros(0), y)
+        if len(self.prior_index):
+            r = jnp.concatenate([r, (x_eff[self.prior_index] - self.prior_mean) / self.prior_sigma])
+        return r
+
     def check_ready(self) -> None:
         """Refuse problems the solver cannot start on (no unknowns, no values)."""
         if self.params.size == 0:
             raise SolverError("nothing to estimate: name the unknowns (--estimate NAME|GLOB)")
         self.measurements.require_values()
+
+
+class OrientationSteps:
+    """The solver's local parameterisation of a problem's roll-pitch-yaw orientations.
+
+    For an orientation R(r, p, y) = Rz(y)·Ry(p)·Rx(r) whose three angles are unknown, the solver
+    steps in a rotation vector δ about the current orientation: the model sees
+    R(r, p, y)·exp([δ]×), whose derivative in δ is regular at every orientation, where the
+    derivative in the angles loses a direction at p = ±90° (gimbal lock).  After a step the
+    angles are read back from the rotation — the branch and the multiples of 2π nearest the
+    previous angles, so they move continuously — and the model, the covariance and the report
+    keep the user's angles.  Every other unknown is stepped additively, as without it.
+
+    It follows :class:`mbcal.solver.LocalParameterisation`; ``SolverConfig(manifold=False)``
+    turns it off.
+    """
+
+    def __init__(self, problem: Problem):
+        self.problem = problem
+        self.positions = np.concatenate([p for _, p in problem.orientations])  # (K, 3) positions in x
+
+    def residual(self, x: Array, d: Array, y: Array, known: Array) -> Array:
+        """r(x ⊞ d) (see :meth:`Problem.local_residual`)."""
+        return self.problem.local_residual(x, d, y, known)
+
+    def plus(self, x: Array, d: Array) -> Array:
+        """x ⊞ d: additive for every unknown but the angles, which become those of R(angles)·exp([δ]×)."""
+        P = self.positions
+        angles = x[P]  # (K, 3) roll, pitch, yaw
+        rotated = _rpy_matrix(angles) @ _exp_so3(d[P])
+        return (x + d).at[P].set(_rpy_nearest(rotated, angles))
+
+    def represent(self, x: Array, reference: Array) -> Array:
+        """x with each orientation's angles rewritten as the equivalent ones nearest ``reference``
+        (the restart's start): the other branch (r + π, π − p, y + π) or other multiples of 2π
+        when they are nearer.  The orientation itself does not change."""
+        P = self.positions
+        return x.at[P].set(_equivalent_nearest(x[P], reference[P]))
+
+
+def _rpy_matrix(angles: Array) -> Array:
+    """(K, 3, 3) Rz(yaw)·Ry(pitch)·Rx(roll) of (K, 3) angles."""
+    cr, cp, cy = (jnp.cos(angles[:, k]) for k in range(3))
+    sr, sp, sy = (jnp.sin(angles[:, k]) for k in range(3))
+    rows = [
+        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+        [-sp, cp * sr, cp * cr],
+    ]
+    return jnp.stack([jnp.stack(row, axis=-1) for row in rows], axis=-2)
+
+
+def _exp_so3(w: Array) -> Array:
+    """(K, 3, 3) exp([w]×) of (K, 3) rotation vectors."""
+    R = sm.rotation_vector((w[:, 0], w[:, 1], w[:, 2]))
+    return jnp.stack([jnp.stack([jnp.asarray(v) * jnp.ones(w.shape[0]) for v in row], axis=-1) for row in R], axis=-2)
+
+
+def _rpy_nearest(R: Array, previous: Array) -> Array:
+    """(K, 3) roll, pitch, yaw of rotations (K, 3, 3), nearest to ``previous``.
+
+    Yaw is atan2(R10, R00) (the previous yaw at gimbal lock, where only roll ∓ yaw is defined);
+    with M = Rz(−yaw)·R = Ry(pitch)·Rx(roll), pitch = atan2(−M20, M00) and roll = atan2(−M12,
+    M11), exact at every pitch.  Of the two angle triples of one rotation, (r, p, y) and
+    (r + π, π − p, y + π), each taken modulo 2π nearest ``previous``, the nearer is returned.
+    """
+    locked = jnp.hypot(R[:, 0, 0], R[:, 1, 0]) < 1e-12
+    yaw = jnp.where(locked, previous[:, 2], jnp.arctan2(R[:, 1, 0], R[:, 0, 0]))
+    c, s = jnp.cos(yaw), jnp.sin(yaw)
+    m00 = c * R[:, 0, 0] + s * R[:, 1, 0]
+    m11 = c * R[:, 1, 1] - s * R[:, 0, 1]
+    m12 = c * R[:, 1, 2] - s * R[:, 0, 2]
+    pitch = jnp.arctan2(-R[:, 2, 0], m00)
+    roll = jnp.arctan2(-m12, m11)
+    return _equivalent_nearest(jnp.stack([roll, pitch, yaw], axis=-1), previous)
+
+
+def _equivalent_nearest(angles: Array, reference: Array) -> Array:
+    """Of the angle triples of the same rotations as (K, 3) ``angles`` — (r, p, y) and
+    (r + π, π − p, y + π), each angle modulo 2π — the one nearest ``reference``."""
+    roll, pitch, yaw = angles[:, 0], angles[:, 1], angles[:, 2]
+    other = jnp.stack([roll + jnp.pi, jnp.pi - pitch, yaw + jnp.pi], axis=-1)
+
+    def near(a):
+        return reference + (a - reference - 2.0 * jnp.pi * jnp.round((a - reference) / (2.0 * jnp.pi)))
+
+    a, b = near(angles), near(other)
+    use_other = jnp.sum((b - reference) ** 2, axis=-1) < jnp.sum((a - reference) ** 2, axis=-1)
+    return jnp.where(use_other[:, None], b, a)

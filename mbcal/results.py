@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from mbcal.export.mdl import write_calibrated_model
+from mbcal.fit import FitVerdict
 from mbcal.measurements.registry import get_model
 from mbcal.observability import Observability, PointUncertainty
 from mbcal.problem import Problem
@@ -103,6 +104,9 @@ class CalibrationResult:
     elapsed: float
     outlier_threshold: float = 3.0
     run: RunInfo = field(default_factory=RunInfo)
+    verdict: FitVerdict | None = None
+    """Whether the fit is consistent with the stated σ (and what to suspect if not), and whether every
+    unknown is well determined (:mod:`mbcal.fit`)."""
 
     @property
     def info(self) -> dict[str, Any]:
@@ -149,8 +153,14 @@ class CalibrationResult:
 
     @property
     def ok(self) -> bool:
-        """Converged and every unknown determined."""
-        return self.converged and self.observable
+        """Converged, every unknown determined, and the verdict trustworthy: the fit consistent with the
+        stated σ and no direction weakly determined (unless accepted, ``accept_poor_fit``)."""
+        return self.converged and self.observable and (self.verdict is None or self.verdict.ok)
+
+    @property
+    def consistent(self) -> bool:
+        """The χ² test passed (or could not be made)."""
+        return self.verdict is None or self.verdict.consistent
 
     @property
     def n_measurements(self) -> int:
@@ -206,10 +216,17 @@ class PlanAnalysis:
     observability: Observability
     points: list[PointUncertainty]
     invisible: list[str]
+    verdict: FitVerdict | None = None
+    """Whether every unknown would be well determined (no weak direction, condition number in bounds)."""
 
     @property
     def names(self) -> list[str]:
         return self.problem.unknown_names
+
+    @property
+    def ok(self) -> bool:
+        """Every unknown determined (priors included) and well determined (unless accepted)."""
+        return self.observability.observable_with_priors and (self.verdict is None or self.verdict.ok)
 
     @property
     def std(self) -> dict[str, float]:
@@ -267,6 +284,36 @@ def _covariance_json(names, cov, corr) -> dict[str, Any]:
     }
 
 
+# ---- hard bounds active at the solution (issue 14, item 2) ---------------------------------------
+
+
+def _active_bounds_json(r: CalibrationResult) -> list[dict[str, Any]]:
+    """The unknowns held at an active hard bound: which bound, its value (SI) and unit."""
+    out = []
+    for name, side in r.observability.active_bounds.items():
+        info = r.problem.params.info(name)
+        limit = info.limit_lower if side == "lower" else info.limit_upper
+        unit = info.unit
+        value = None if limit is None else _num(limit)
+        out.append({"name": name, "bound": side, "limit": value, "unit": "rad" if unit == "deg" else unit})
+    return out
+
+
+def _active_bounds_text(r: CalibrationResult) -> list[str]:
+    bounds = r.observability.active_bounds
+    if not bounds:
+        return []
+    parts = []
+    for entry in _active_bounds_json(r):
+        unit = r.unit(entry["name"])
+        parts.append(f"{entry['name']} at its {entry['bound']} limit {_value_cell(unit, entry['limit'])}")
+    return [
+        f"at an active bound ({len(bounds)}): " + "; ".join(parts),
+        "  the data push these past their limits: each is held at its bound, with σ 0, and the covariance "
+        "of the others is computed with it held",
+    ]
+
+
 def result_json(r: CalibrationResult) -> dict[str, Any]:
     """The calibration report as JSON-ready data."""
     units = {n: r.unit(n) for n in r.names}
@@ -313,6 +360,8 @@ def result_json(r: CalibrationResult) -> dict[str, Any]:
         "residuals": [row.to_json() for row in r.residuals],
         "outliers": {"threshold": r.outlier_threshold, "ids": [row.id for row in r.outliers]},
         "not_visible": list(r.run.not_visible),
+        "active_bounds": _active_bounds_json(r),
+        **({"fit": r.verdict.to_json()} if r.verdict is not None else {}),
         "points": [p.to_json() for p in r.points],
         "solver": {
             "loss": str(solver.config.loss),
@@ -413,12 +462,13 @@ def result_text(r: CalibrationResult, *, max_residuals: int = 15) -> str:
             [
                 name,
                 _value_cell(unit, r.x[i]),
-                _std_cell(unit, r.observability.std[i]),
+                "0 (at bound)" if name in r.observability.active_bounds else _std_cell(unit, r.observability.std[i]),
                 _value_cell(unit, r.x_initial[i]),
             ]
         )
     out.append("")
     out.append(table(["parameter", "estimate", "σ", "initial"], rows, align="lrrr"))
+    out.extend(_active_bounds_text(r))
     out.extend(_observability_text(r.observability))
     out.extend(_points_text(r.points, r.problem.model))
     worst = sorted(r.residuals, key=lambda row: -row.normalized)
@@ -452,6 +502,9 @@ def result_text(r: CalibrationResult, *, max_residuals: int = 15) -> str:
             + ", ".join(row.id for row in r.outliers[:10])
             + (" …" if len(r.outliers) > 10 else "")
         )
+    if r.verdict is not None:
+        out.append("")
+        out.extend(r.verdict.lines())
     counts: dict[str, int] = {}
     for s in solver.statuses():
         counts[s.label] = counts.get(s.label, 0) + 1
@@ -482,6 +535,8 @@ def plan_json(a: PlanAnalysis) -> dict[str, Any]:
         "observability": _observability_json(a.observability),
         "covariance": _covariance_json(a.names, a.observability.covariance, a.observability.correlation),
         "points": [p.to_json() for p in a.points],
+        **({"fit": a.verdict.to_json()} if a.verdict is not None else {}),
+        "ok": a.ok,
     }
 
 
@@ -500,4 +555,7 @@ def plan_text(a: PlanAnalysis) -> str:
     out.append(table(["parameter", "at", "expected σ"], rows, align="lrr"))
     out.extend(_observability_text(a.observability))
     out.extend(_points_text(a.points, a.problem.model))
+    if a.verdict is not None:
+        out.append("")
+        out.extend(a.verdict.lines())
     return "\n".join(out)

@@ -10,6 +10,23 @@ restart that fails (non-finite residuals) gets its status without stopping the b
 
 The low-level entry point :func:`least_squares` solves any residual function, so the solver
 serves beyond .mdl models (the NIST StRD tests use it directly).
+
+Two options change the step, and only when asked for (without them the compiled program is the
+one it always was, bit for bit):
+
+- **Hard bounds** (``bounds=(lower, upper)``): projected Marquardt steps, as Ceres does for box
+  constraints.  At x, an unknown on a bound whose gradient pushes it outwards is *active* and
+  held fixed (its row and column of the damped system are replaced by the identity, its
+  right-hand side by 0); the others take the Marquardt step δ, and the trial point is
+  clip(x + δ, lower, upper), so every iterate is inside.  The gain ratio uses the decrease the
+  linear model predicts for the step actually taken, s = clip(x + δ) − x; the gradient test
+  uses the projected gradient (0 for active unknowns).  The result says which unknowns end on
+  an active bound (:attr:`LeastSquaresResult.active`).
+- **A local parameterisation** (``local=...``, :class:`LocalParameterisation`): the solver steps
+  in local coordinates d about the current x — the Jacobian is ∂r(x ⊞ d)/∂d at d = 0 and the
+  trial point is x ⊞ δ.  :class:`mbcal.problem.Problem` offers one that steps roll-pitch-yaw
+  orientations in a rotation vector (no gimbal lock); ``SolverConfig(manifold=False)`` turns
+  it off.
 """
 
 from __future__ import annotations
@@ -18,7 +35,7 @@ import enum
 import functools
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
@@ -28,7 +45,15 @@ from mbcal.errors import SolverError
 
 Array = Any
 
-__all__ = ["Status", "SolverConfig", "Loss", "LeastSquaresResult", "least_squares", "random_starts"]
+__all__ = [
+    "Status",
+    "SolverConfig",
+    "Loss",
+    "LeastSquaresResult",
+    "LocalParameterisation",
+    "least_squares",
+    "random_starts",
+]
 
 
 class Status(enum.IntEnum):
@@ -114,6 +139,12 @@ class SolverConfig:
     loss_scale : float, optional
         Scale c of the robust loss, in units of the whitened residual (σ): residuals below c
         count quadratically.  Default: :attr:`Loss.default_scale` (Huber 1.345, Cauchy 2.385).
+    manifold : bool
+        Use the local parameterisation the caller offers (``least_squares(..., local=...)``):
+        for a calibration, orientations whose roll, pitch and yaw are all unknown are stepped
+        in a rotation vector about the current orientation, so they converge at ±90° pitch
+        (gimbal lock) too.  False: plain additive steps in the angles.  Without an offer
+        (problems without such orientations) it changes nothing.
     """
 
     max_iterations: int = 100
@@ -124,6 +155,7 @@ class SolverConfig:
     lambda_max: float = 1e16
     loss: Loss = Loss.LINEAR
     loss_scale: float | None = None
+    manifold: bool = True
 
     def __post_init__(self) -> None:
         try:
@@ -193,6 +225,10 @@ class LeastSquaresResult:
     iterations : (R,) int
     best : int
         Index of the restart with the smallest finite cost (−1 when none is finite).
+    active : (R, n) int or None
+        With bounds: −1 where an unknown ends on its lower bound and the gradient pushes it
+        further down (an *active* bound: the bound, not the data, decides its value), +1 on its
+        upper bound pushed upwards, 0 elsewhere.  None when solved without bounds.
     """
 
     x: np.ndarray
@@ -202,6 +238,7 @@ class LeastSquaresResult:
     iterations: np.ndarray
     best: int
     config: SolverConfig = field(repr=False, default_factory=SolverConfig)
+    active: np.ndarray | None = None
 
     @property
     def x_best(self) -> np.ndarray:
@@ -223,6 +260,35 @@ class LeastSquaresResult:
 
     def statuses(self) -> list[Status]:
         return [Status(int(s)) for s in self.status]
+
+    @property
+    def active_best(self) -> np.ndarray:
+        """(n,) the best restart's active bounds: −1 lower, +1 upper, 0 free (all 0 without bounds)."""
+        if self.active is None or self.best < 0:
+            return np.zeros(self.x.shape[1], dtype=np.int64)
+        return np.asarray(self.active[self.best], dtype=np.int64)
+
+
+class LocalParameterisation(Protocol):
+    """Local coordinates for the solver's steps (a manifold step, as in Ceres and jaxlie).
+
+    The solver linearises ``r(x ⊞ d)`` in d at d = 0 and moves to ``x ⊞ δ``.  Both methods are
+    traced with JAX; an object is compiled once per identity (keep the same object between
+    calls).  :class:`mbcal.problem.Problem` provides one for roll-pitch-yaw orientations.
+    """
+
+    def residual(self, x: Array, d: Array, *args: Array) -> Array:
+        """The residual at x ⊞ d, differentiable in d at d = 0 (``args`` as for ``fun``)."""
+        ...
+
+    def plus(self, x: Array, d: Array) -> Array:
+        """x ⊞ d: the point reached by the step d from x (x ⊞ 0 = x)."""
+        ...
+
+    def represent(self, x: Array, reference: Array) -> Array:
+        """The coordinates of the same point nearest ``reference`` (where one point has several,
+        as angles do); applied to each restart's result with its start as the reference."""
+        ...
 
 
 # Systems up to this size are solved by an unrolled Cholesky: under vmap it becomes a few fused
@@ -270,19 +336,38 @@ class _LMState(NamedTuple):
     status: Array  # 0 while running, else a Status code
 
 
-def _lm_single(fun: Callable, config: SolverConfig, x0: Array, args: tuple, m: int) -> tuple:
-    """Marquardt iterations from one start; returns (x, cost, status, iterations).
+def _lm_single(
+    fun: Callable,
+    config: SolverConfig,
+    x0: Array,
+    args: tuple,
+    m: int,
+    bounds: tuple[Array, Array] | None = None,
+    local: LocalParameterisation | None = None,
+) -> tuple:
+    """Marquardt iterations from one start; returns (x, cost, status, iterations), and with
+    ``bounds`` also the active bounds at the end (−1, 0, +1 per unknown).
 
     The loop body evaluates the residual and Jacobian once, at the trial point the previous
     iteration proposed (the first iteration evaluates x0), so the model is traced only once.
+    Without ``bounds`` and ``local`` the traced program is exactly the plain Marquardt loop.
     """
     loss, scale = config.loss, config.loss_scale
     assert scale is not None  # SolverConfig.__post_init__ replaces None with the loss's default
     n = x0.shape[0]
 
-    def evaluate(x):
-        # One forward-mode pass gives the Jacobian and, as auxiliary output, the residual itself.
-        return jax.jacfwd(lambda z: (lambda r: (r, r))(fun(z, *args)), has_aux=True)(x)
+    if local is None:
+
+        def evaluate(x):
+            # One forward-mode pass gives the Jacobian and, as auxiliary output, the residual itself.
+            return jax.jacfwd(lambda z: (lambda r: (r, r))(fun(z, *args)), has_aux=True)(x)
+
+    else:
+        zero_step = jnp.zeros(n)
+
+        def evaluate(x):
+            # The Jacobian in the local coordinates about x: ∂r(x ⊞ d)/∂d at d = 0.
+            return jax.jacfwd(lambda d: (lambda r: (r, r))(local.residual(x, d, *args)), has_aux=True)(zero_step)
 
     def weighted(r, J):
         s = r * r
@@ -290,8 +375,15 @@ def _lm_single(fun: Callable, config: SolverConfig, x0: Array, args: tuple, m: i
         w = jnp.sqrt(drho)
         return jnp.sum(rho), w * r, w[:, None] * J
 
-    def gradient_small(rw, Jw):
+    def active_set(x, g):
+        """Unknowns on a bound that the gradient pushes outwards (S decreases along −g)."""
+        lower, upper = bounds
+        return ((x <= lower) & (g > 0)) | ((x >= upper) & (g < 0))
+
+    def gradient_small(rw, Jw, x):
         g = Jw.T @ rw
+        if bounds is not None:
+            g = jnp.where(active_set(x, g), 0.0, g)  # the projected gradient
         col = jnp.sqrt(jnp.sum(Jw * Jw, axis=0))
         rn = jnp.sqrt(jnp.sum(rw * rw))
         denom = col * rn
@@ -340,16 +432,29 @@ def _lm_single(fun: Callable, config: SolverConfig, x0: Array, args: tuple, m: i
         tiny = (actual <= config.ftol * cost) & (predicted <= config.ftol * cost)
         status = jnp.where((status == 0) & accept & ~first & tiny, Status.CONVERGED_COST, status)
         status = jnp.where((status == 0) & accept & (cost == 0), Status.CONVERGED_COST, status)
-        status = jnp.where((status == 0) & accept & gradient_small(rw, Jw), Status.CONVERGED_GRADIENT, status)
+        status = jnp.where((status == 0) & accept & gradient_small(rw, Jw, x), Status.CONVERGED_GRADIENT, status)
         # The next trial point.
         A = Jw.T @ Jw
         g = Jw.T @ rw
         D = jnp.maximum(D, jnp.diag(A))
         Dc = jnp.maximum(D, 1e-12 * jnp.maximum(jnp.max(D), 1e-300))
-        delta = _solve_spd(A + lam * jnp.diag(Dc), -g)
+        if bounds is None:
+            delta = _solve_spd(A + lam * jnp.diag(Dc), -g)
+        else:
+            # Active unknowns are held: their rows and columns of the damped system become the identity.
+            free = ~active_set(x, g)
+            both = free[:, None] & free[None, :]
+            M = jnp.where(both, A + lam * jnp.diag(Dc), 0.0) + jnp.diag(jnp.where(free, 0.0, 1.0))
+            delta = _solve_spd(M, jnp.where(free, -g, 0.0))
         finite_step = jnp.all(jnp.isfinite(delta))
         delta = jnp.where(finite_step, delta, 0.0)
-        predicted = jnp.where(finite_step, -(2.0 * g @ delta + delta @ (A @ delta)), -1.0)
+        if bounds is None:
+            taken = delta
+        else:
+            # The step actually taken after the projection (local coordinates are never bounded).
+            moved = x + delta
+            taken = delta + (jnp.clip(moved, bounds[0], bounds[1]) - moved)
+        predicted = jnp.where(finite_step, -(2.0 * g @ taken + taken @ (A @ taken)), -1.0)
         step = jnp.sqrt(jnp.sum(delta * delta))
         xnorm = jnp.sqrt(jnp.sum(x * x))
         status = jnp.where(
@@ -358,23 +463,72 @@ def _lm_single(fun: Callable, config: SolverConfig, x0: Array, args: tuple, m: i
         status = jnp.where((status == 0) & (lam > config.lambda_max), Status.STALLED, status)
         status = jnp.where((status == 0) & (it >= config.max_iterations), Status.MAX_ITERATIONS, status)
         # A step that cannot be computed is a rejection: try again with a larger λ.
-        x_try = jnp.where(finite_step, x + delta, x)
+        x_next = x + delta if local is None else local.plus(x, delta)
+        if bounds is not None:
+            x_next = jnp.clip(x_next, bounds[0], bounds[1])
+        x_try = jnp.where(finite_step, x_next, x)
         return _LMState(x, r, rw, Jw, cost, x_try, predicted, lam, nu, D, it, status.astype(jnp.int32))
 
     final = jax.lax.while_loop(cond, body, state0)
     # The running cost accumulates exact changes; report the cost of the final residual itself.
     cost = jnp.where(final.status == Status.NON_FINITE, jnp.inf, weighted(final.r, jnp.zeros((m, 1)))[0])
-    return final.x, cost, final.status, final.it
+    if local is not None:
+        final = final._replace(x=local.represent(final.x, x0))
+    if bounds is None:
+        return final.x, cost, final.status, final.it
+    # Active at the end: on a bound, with a gradient that pushes outwards by more than gtol
+    # (scale-free, as the gradient test): an unknown no measurement sees stays free (σ = ∞).
+    g = final.Jw.T @ final.rw
+    denom = jnp.sqrt(jnp.sum(final.Jw * final.Jw, axis=0)) * jnp.sqrt(jnp.sum(final.rw * final.rw))
+    pushed = jnp.abs(g) > config.gtol * denom
+    lower_active = (final.x <= bounds[0]) & (g > 0) & pushed
+    upper_active = (final.x >= bounds[1]) & (g < 0) & pushed
+    active = jnp.where(lower_active, -1, jnp.where(upper_active, 1, 0)).astype(jnp.int32)
+    return final.x, cost, final.status, final.it, active
+
+
+class _Identity:
+    """Wraps an object so that the compiled-code cache keys on its identity."""
+
+    __slots__ = ("obj",)
+
+    def __init__(self, obj: Any):
+        self.obj = obj
+
+    def __hash__(self) -> int:
+        return id(self.obj)
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, _Identity) and other.obj is self.obj
 
 
 @functools.lru_cache(maxsize=64)
-def _compiled(fun: Callable, config: SolverConfig, size: int | None = None) -> Callable:
-    def batch(x0s, args):
-        # The number of residuals: given, or from a cheap abstract trace.
-        m = size if size is not None else jax.eval_shape(fun, x0s[0], *args).shape[0]
-        return jax.vmap(lambda x0: _lm_single(fun, config, x0, args, m))(x0s)
+def _compiled(
+    fun: Callable,
+    config: SolverConfig,
+    size: int | None = None,
+    bounded: bool = False,
+    wrapped: _Identity | None = None,
+) -> Callable:
+    local: LocalParameterisation | None = None if wrapped is None else wrapped.obj
 
-    return jax.jit(batch)
+    def residuals(x0s, args):
+        # The number of residuals: given, or from a cheap abstract trace.
+        return size if size is not None else jax.eval_shape(fun, x0s[0], *args).shape[0]
+
+    if not bounded:
+
+        def batch(x0s, args):
+            m = residuals(x0s, args)
+            return jax.vmap(lambda x0: _lm_single(fun, config, x0, args, m, None, local))(x0s)
+
+        return jax.jit(batch)
+
+    def batch_bounded(x0s, args, lower, upper):
+        m = residuals(x0s, args)
+        return jax.vmap(lambda x0: _lm_single(fun, config, x0, args, m, (lower, upper), local))(x0s)
+
+    return jax.jit(batch_bounded)
 
 
 def least_squares(
@@ -385,6 +539,8 @@ def least_squares(
     config: SolverConfig | None = None,
     size: int | None = None,
     cache_key: str | None = None,
+    bounds: tuple[Array, Array] | None = None,
+    local: LocalParameterisation | None = None,
 ) -> LeastSquaresResult:
     """Minimise ``Σ ρ(r_i²)`` for ``r = fun(x, *args)`` from one or many starting points.
 
@@ -403,32 +559,67 @@ def least_squares(
         The number of residuals, when known (saves one trace of ``fun``).
     cache_key : str, optional
         A fingerprint of everything ``fun`` depends on besides ``args`` (see :mod:`mbcal.cache`):
-        the traced program is then saved and a later process reuses it without tracing.
+        the traced program is then saved and a later process reuses it without tracing.  With
+        ``local`` it must cover what ``local`` depends on as well.
+    bounds : (lower, upper) of (n,) arrays, optional
+        Hard bounds (±inf: none on that side).  Every iterate stays inside (projected steps:
+        see the module's documentation); starting points outside are moved onto the nearest
+        bound.  None (or all infinite): no bounds, and the very program that runs without them.
+    local : LocalParameterisation, optional
+        Local coordinates to step in (used when ``config.manifold`` is true; see
+        :class:`LocalParameterisation`).  Bounded unknowns must be stepped additively by it.
 
     Returns
     -------
     LeastSquaresResult
-        Every restart's x, cost, status and iteration count, and the index of the best.
+        Every restart's x, cost, status and iteration count, the index of the best, and with
+        bounds the active bounds of every restart.
     """
     config = config or SolverConfig()
     x0 = np.atleast_2d(np.asarray(x0, dtype=float))
     args = tuple(jnp.asarray(a) for a in args)
-    program = _compiled(fun, config, size)
+    local = local if config.manifold else None
+    limits: tuple[np.ndarray, np.ndarray] | None = None
+    if bounds is not None:
+        lower = np.broadcast_to(np.asarray(bounds[0], dtype=float), x0.shape[1:]).copy()
+        upper = np.broadcast_to(np.asarray(bounds[1], dtype=float), x0.shape[1:]).copy()
+        if np.any(np.isnan(lower)) or np.any(np.isnan(upper)) or np.any(lower > upper):
+            raise SolverError("bounds must be numbers (±inf for none) with lower ≤ upper")
+        if np.any(np.isfinite(lower)) or np.any(np.isfinite(upper)):
+            limits = (lower, upper)
+            x0 = np.clip(x0, lower, upper)
+    program = _compiled(fun, config, size, limits is not None, local if local is None else _Identity(local))
+    example: tuple[Any, ...] = (jnp.asarray(x0), args)
+    if limits is not None:
+        example += (jnp.asarray(limits[0]), jnp.asarray(limits[1]))
     if cache_key is not None:
         key = Hasher().add(cache_key, repr(config), size, x0.shape, [(a.shape, str(a.dtype)) for a in args])
-        program = exported(key.hexdigest(), program, jnp.asarray(x0), args)
-    x, cost, status, it = program(jnp.asarray(x0), args)
-    x, cost, status, it = (np.asarray(v) for v in (x, cost, status, it))
+        if limits is not None:
+            key.add("bounded")
+        if local is not None:
+            key.add("local", type(local).__module__, type(local).__qualname__)
+        program = exported(key.hexdigest(), program, *example)
+    out = program(*example)
+    x, cost, status, it = (np.asarray(v) for v in out[:4])
+    active = np.asarray(out[4]) if limits is not None else None
     finite = np.isfinite(cost)
     best = int(np.argmin(np.where(finite, cost, np.inf))) if finite.any() else -1
-    return LeastSquaresResult(x=x, x0=x0, cost=cost, status=status, iterations=it, best=best, config=config)
+    return LeastSquaresResult(
+        x=x, x0=x0, cost=cost, status=status, iterations=it, best=best, config=config, active=active
+    )
 
 
 def random_starts(
-    x_init: np.ndarray, lower: np.ndarray, upper: np.ndarray, restarts: int, seed: int | None
+    x_init: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    restarts: int,
+    seed: int | None,
+    limits: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """(restarts, n) starting points: the first is ``x_init``; the others are drawn uniformly in
-    [lower, upper] where both are finite, and equal ``x_init`` elsewhere."""
+    [lower, upper] where both are finite, and equal ``x_init`` elsewhere.  With ``limits``
+    (hard bounds) every start is then moved inside them (the draws themselves are unchanged)."""
     rng = np.random.default_rng(seed)
     n = len(x_init)
     out = np.tile(np.asarray(x_init, dtype=float), (max(1, restarts), 1))
@@ -438,4 +629,6 @@ def random_starts(
         span = np.where(ranged, upper - lower, 0.0)
         base = np.where(ranged, lower, 0.0)
         out[1:] = np.where(ranged, base + draws * span, out[1:])
+    if limits is not None:
+        out = np.clip(out, limits[0], limits[1])
     return out

@@ -247,3 +247,27 @@ def test_kind_the_model_does_not_declare_is_refused(tmp_path, monkeypatch):
     assert str(info.value).startswith(
         "m.csv:2:1: the model declares the measurement models point3d; 'distance' is not one of them"
     )
+
+
+def test_csv_files_are_read_line_by_line_whatever_their_line_ends(room, tmp_path):
+    """CSV files are streamed (docs/reliability.md): a byte-order mark, CRLF and bare CR line ends
+    read the same, and bytes that are not UTF-8 are an error at their line."""
+    rows = [
+        "id,kind,camera,point,u,v",
+        "m1,image_point,eyes.left,lever.tip,1,2",
+        "m2,image_point,eyes.left,lever.hub,3,4",
+    ]
+    for name, data in (
+        ("bom.csv", b"\xef\xbb\xbf" + "\r\n".join(rows).encode() + b"\r\n"),
+        ("mac.csv", "\r".join(rows).encode() + b"\r"),
+        ("unix.csv", "\n".join(rows).encode()),
+    ):
+        (tmp_path / name).write_bytes(data)
+        ms = read_measurements(tmp_path / name, room)
+        assert [m.id for m in ms] == ["m1", "m2"], name
+        assert [m.where.line for m in ms] == [2, 3], name
+    latin1 = "\n".join(rows).encode() + b"\nm3,image_point,eyes.left,lever.tip,5,6 \xb5m\n"
+    (tmp_path / "latin1.csv").write_bytes(latin1)
+    with pytest.raises(MeasurementFileError, match=r"latin1.csv is not UTF-8 text \(line 4, byte 40\)") as info:
+        read_measurements(tmp_path / "latin1.csv", room)
+    assert info.value.span.line == 4

@@ -113,7 +113,7 @@ class Include(Statement):
 
 @dataclass(frozen=True)
 class Param(Statement):
-    """``param name[i..j] = value in [lo, hi] sigma s per configuration``."""
+    """``param name[i..j] = value in [lo, hi] [bounded] [limits [a, b]] sigma s per configuration``."""
 
     name: str = ""
     value: Expr | None = None
@@ -122,6 +122,10 @@ class Param(Statement):
     upper: Expr | None = None
     sigma: Expr | None = None
     per_configuration: bool = False
+    bounded: bool = False  # ``in [lo, hi] bounded``: the search range is also the hard limits
+    limit_lower: Expr | None = None  # ``limits [a, b]``: hard limits (``inf``/``-inf`` leave a side open)
+    limit_upper: Expr | None = None
+    limits_span: SourceSpan | None = None  # where ``bounded`` or ``limits [...]`` stands
 
 
 @dataclass(frozen=True)

@@ -125,6 +125,13 @@ def _apply_overrides(c: Compiler, names: Namespace) -> None:
         value = c.constant(stmt.value, scope, f"the override of '{name}'")
         if info.dim is not None and not fits(value.dim, info.dim):
             raise UnitError(f"'{name}' is {describe(info.dim)}, the override is {describe(value.dim)}", stmt.value.span)
+        lo, hi = info.limit_lower, info.limit_upper
+        if (lo is not None and value.value < lo) or (hi is not None and value.value > hi):
+            raise DimensionError(
+                f"the override {float(value.value):g} of '{name}' lies outside its limits "
+                f"[{'-inf' if lo is None else f'{lo:g}'}, {'inf' if hi is None else f'{hi:g}'}]",
+                stmt.value.span,
+            )
         sigma = info.sigma
         if stmt.sigma is not None:
             s = c.constant(stmt.sigma, scope, f"the sigma of the override of '{name}'")

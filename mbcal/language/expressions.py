@@ -41,6 +41,15 @@ __all__ = ["Compiler", "AXES", "literal_unit"]
 AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
 
 
+def _infinity(expr: ast.Expr) -> int | None:
+    """+1 for ``inf``, -1 for ``-inf`` (an open end of ``limits [a, b]``), else None."""
+    if isinstance(expr, ast.Name) and expr.name == "inf":
+        return 1
+    if isinstance(expr, ast.Unary) and expr.op == "-" and isinstance(expr.operand, ast.Name):
+        return -1 if expr.operand.name == "inf" else None
+    return None
+
+
 class Compiler:
     """Compiles the expressions of one model; shared by every statement of the second pass.
 
@@ -145,6 +154,7 @@ class Compiler:
                 )
             if not math.isfinite(nominal):
                 raise DimensionError(f"the value of '{decl.name}' is not a finite number", stmt.value.span)
+            limits, dim = self._limits(decl, dim, lower, upper, nominal)
             decl.info = ParamInfo(
                 name=decl.name,
                 index=decl.index,
@@ -158,10 +168,79 @@ class Compiler:
                 value_span=stmt.value.span,
                 value_unit=literal_unit(stmt.value),
                 editable=not decl.scope.in_template and stmt.index_range is None,
+                limit_lower=limits[0],
+                limit_upper=limits[1],
             )
             decl.node = ParamRef(kind=SCALAR, dim=dim, index=decl.index, name=decl.name)
         finally:
             decl.busy = False
+
+    def _limits(
+        self, decl: ParamDecl, dim: Dim | None, lower: float | None, upper: float | None, nominal: float
+    ) -> tuple[tuple[float | None, float | None], Dim | None]:
+        """A parameter's hard limits (``in [lo, hi] bounded`` or ``limits [a, b]``), checked
+        against its unit, its nominal value and its search range."""
+        stmt = decl.stmt
+        where = stmt.limits_span or stmt.span
+        if stmt.bounded and stmt.limit_lower is not None:
+            raise MdlError(
+                f"'{decl.name}' has both 'bounded' and 'limits [...]': give one",
+                where,
+                hint="'bounded' makes the search range the limits; 'limits [a, b]' gives other limits",
+            )
+        if stmt.bounded:
+            assert lower is not None and upper is not None  # the grammar puts 'bounded' after a range
+            if not lower < upper:
+                raise DimensionError(f"'{decl.name}' is bounded by an empty range [{lower:g}, {upper:g}]", where)
+            limits: tuple[float | None, float | None] = (lower, upper)
+        elif stmt.limit_lower is not None and stmt.limit_upper is not None:
+            ends: list[float | None] = []
+            for side, expr in (("lower", stmt.limit_lower), ("upper", stmt.limit_upper)):
+                sign = _infinity(expr)
+                if sign is not None:
+                    if (sign > 0) != (side == "upper"):
+                        raise DimensionError(
+                            f"the {side} limit of '{decl.name}' cannot be {'' if sign > 0 else '-'}inf "
+                            f"(write {'-inf' if side == 'lower' else 'inf'} for no {side} limit)",
+                            expr.span,
+                        )
+                    ends.append(None)
+                    continue
+                b = self.constant(expr, decl.scope, f"the limits of parameter '{decl.name}'")
+                ok, dim2 = unify(dim, b.dim)
+                if not ok or b.kind != SCALAR:
+                    raise UnitError(
+                        f"the limits of '{decl.name}' are {describe(b.dim)} but its value is {describe(dim)}",
+                        expr.span,
+                    )
+                dim = dim2
+                value = float(b.value)
+                if not math.isfinite(value):
+                    raise DimensionError(f"the {side} limit of '{decl.name}' is not a finite number", expr.span)
+                ends.append(value)
+            limits = (ends[0], ends[1])
+            if limits[0] is not None and limits[1] is not None and not limits[0] < limits[1]:
+                raise DimensionError(
+                    f"empty limits [{limits[0]:g}, {limits[1]:g}] for '{decl.name}' (the lower limit must be "
+                    "below the upper)",
+                    where,
+                )
+        else:
+            return (None, None), dim
+        lo = -math.inf if limits[0] is None else limits[0]
+        hi = math.inf if limits[1] is None else limits[1]
+        if not lo <= nominal <= hi:
+            raise DimensionError(
+                f"the value {nominal:g} of '{decl.name}' lies outside its limits [{lo:g}, {hi:g}]",
+                stmt.value.span if stmt.value is not None else where,
+            )
+        if lower is not None and upper is not None and not (lo <= lower and upper <= hi):
+            raise DimensionError(
+                f"the search range [{lower:g}, {upper:g}] of '{decl.name}' reaches outside its limits [{lo:g}, {hi:g}]",
+                stmt.lower.span if stmt.lower is not None else where,
+                hint="random starts are drawn inside both: make the search range part of the limits",
+            )
+        return limits, dim
 
     def constant(self, expr: ast.Expr, scope: Scope, what: str) -> Const:
         """Compile a scalar that must not depend on a parameter (``what`` names it in errors)."""

@@ -51,6 +51,9 @@ class ParamInfo:
         Each configuration of a measurement set has its own copy.
     dim : Dim or None
         Physical dimension (None: given without a unit).
+    limit_lower, limit_upper : float or None
+        Hard limits (``limits [a, b]``, or ``in [lo, hi] bounded``): the estimate never leaves
+        them.  None: no limit on that side.
     """
 
     name: str
@@ -65,6 +68,13 @@ class ParamInfo:
     value_span: SourceSpan | None = field(default=None, repr=False)
     value_unit: str | None = None  # the unit the value was written in ("cm"), None for SI
     editable: bool = False  # one statement declares it alone (no template, no index range)
+    limit_lower: float | None = None
+    limit_upper: float | None = None
+
+    @property
+    def limited(self) -> bool:
+        """Whether the parameter has a hard limit on either side."""
+        return self.limit_lower is not None or self.limit_upper is not None
 
     @property
     def unit(self) -> str:

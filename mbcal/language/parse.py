@@ -35,7 +35,7 @@ RESERVED = frozenset(
     {
         "include", "param", "let", "template", "frame", "object", "link", "shape", "point",
         "joint", "camera", "range", "target", "measure", "override", "at", "in", "sigma", "per",
-        "configuration", "pi", "world",
+        "configuration", "pi", "world", "bounded", "limits",
     }
 )  # fmt: skip
 
@@ -227,8 +227,9 @@ class _ToAst(Transformer):
 
     @v_args(meta=True)
     def param(self, meta, children):
-        name, index_range, value, prange, sigma, per_config = children
-        lower, upper = prange if prange is not None else (None, None)
+        name, index_range, value, prange, limits, sigma, per_config = children
+        lower, upper, bounded, bounded_span = prange if prange is not None else (None, None, False, None)
+        limit_lower, limit_upper, limits_span = limits if limits is not None else (None, None, bounded_span)
         return ast.Param(
             span=self._span(meta),
             name_span=self._tspan(name),
@@ -239,6 +240,10 @@ class _ToAst(Transformer):
             upper=upper,
             sigma=sigma,
             per_configuration=per_config is not None,
+            bounded=bounded,
+            limit_lower=limit_lower,
+            limit_upper=limit_upper,
+            limits_span=limits_span,
         )
 
     @v_args(meta=True)
@@ -263,7 +268,16 @@ class _ToAst(Transformer):
         )
 
     def param_range(self, children):
-        return (children[0], children[1])
+        lower, upper, bounded = children
+        return (lower, upper, bounded is not None, bounded)
+
+    @v_args(meta=True)
+    def bounded(self, meta, children):
+        return self._span(meta)
+
+    @v_args(meta=True)
+    def param_limits(self, meta, children):
+        return (children[0], children[1], self._span(meta))
 
     def param_sigma(self, children):
         return children[0]

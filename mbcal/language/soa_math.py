@@ -54,6 +54,7 @@ __all__ = [
     "rodrigues",
     "rodrigues_cs",
     "rpy",
+    "rotation_vector",
     "axis_angle",
     "quaternion",
     "normalise",
@@ -258,6 +259,27 @@ def rodrigues_cs(axis: Vec, c: Scalar, s: Scalar) -> tuple:
 def rpy(r: Scalar, p: Scalar, y: Scalar) -> Transform:
     """Roll, pitch, yaw: Rz(y) · Ry(p) · Rx(r), as :func:`mbcal.geometry.transforms.rpy`."""
     return compose(compose(rotation(2, y), rotation(1, p)), rotation(0, r))
+
+
+def rotation_vector(w: Vec) -> tuple:
+    """The 3×3 rotation exp([w]×) of a rotation vector w (axis · angle), smooth at w = 0.
+
+    R = I + A [w]× + B [w]×² with A = sin θ / θ and B = (1 − cos θ) / θ² = 2 sin²(θ/2) / θ²;
+    below θ = 1e-6 their Taylor series are used, so forward-mode derivatives at w = 0 are exact
+    (∂R/∂w_k = [e_k]×) and never NaN.
+    """
+    xp = jnp()
+    wx, wy, wz = w
+    t2 = wx * wx + wy * wy + wz * wz
+    small = t2 < 1e-12
+    safe = xp.where(small, 1.0, t2)
+    theta = xp.sqrt(safe)
+    half = xp.sin(0.5 * theta)
+    A = xp.where(small, 1.0 - t2 / 6.0, xp.sin(theta) / theta)
+    B = xp.where(small, 0.5 - t2 / 24.0, 2.0 * half * half / safe)
+    K = ((0.0, neg(wz), wy), (wz, 0.0, neg(wx)), (neg(wy), wx, 0.0))
+    K2 = matmul3(K, K)
+    return tuple(tuple(add(I3[i][j], add(mul(A, K[i][j]), mul(B, K2[i][j]))) for j in range(3)) for i in range(3))
 
 
 def axis_angle(axis: Vec, angle: Scalar) -> Transform:

@@ -20,6 +20,14 @@ def _value_with_unit(info, value: float | None) -> str:
     return f"{fmt(info.display(value), 6)} {unit}".rstrip()
 
 
+def _limits(info) -> str:
+    if not info.limited:
+        return "—"
+    lo = "-∞" if info.limit_lower is None else fmt(info.display(info.limit_lower), 4)
+    hi = "∞" if info.limit_upper is None else fmt(info.display(info.limit_upper), 4)
+    return f"[{lo}, {hi}] {info.unit}".rstrip()
+
+
 def model_summary(model: Model) -> str:
     """Parameters, frames, points, sensors and shapes of a model, as text."""
     out = [f"model {model.path}"]
@@ -33,21 +41,19 @@ def model_summary(model: Model) -> str:
     rows: list[list[Any]]
     if model.params:
         rows = []
+        limited = any(p.limited for p in model.params)  # the limits column only when a model has some
         for p in model.params:
             rng = "—"
             if p.lower is not None and p.upper is not None:
                 rng = f"[{fmt(p.display(p.lower), 4)}, {fmt(p.display(p.upper), 4)}] {p.unit}".rstrip()
-            rows.append(
-                [
-                    p.name,
-                    _value_with_unit(p, p.nominal),
-                    rng,
-                    _value_with_unit(p, p.sigma),
-                    "per configuration" if p.per_configuration else "",
-                ]
-            )
+            row = [p.name, _value_with_unit(p, p.nominal), rng]
+            if limited:
+                row.append(_limits(p))
+            row += [_value_with_unit(p, p.sigma), "per configuration" if p.per_configuration else ""]
+            rows.append(row)
+        head = ["parameter", "nominal", "search range"] + (["limits"] if limited else []) + ["prior σ", ""]
         out.append("")
-        out.append(table(["parameter", "nominal", "search range", "prior σ", ""], rows, align="lllll"))
+        out.append(table(head, rows, align="l" * len(head)))
     if model.frames:
         rows = []
         for f in model.frames:

@@ -45,7 +45,10 @@ _DIMENSION_UNITS = {
 _PIXEL_UNITS = {"px", "pixel", "pixels"}
 
 
-@dataclass(frozen=True)
+_NO_DATA: dict[str, float] = {}  # shared by the measurements without extra inputs (never mutated)
+
+
+@dataclass(frozen=True, slots=True)
 class Measurement:
     """One measurement (or, in a plan, one measurement to make).
 
@@ -114,10 +117,7 @@ class MeasurementSet:
     @property
     def config_names(self) -> list[str]:
         """Configurations in order: those with known values first, then as measurements name them."""
-        names = list(self.configurations)
-        for m in self.measurements:
-            if m.config not in names:
-                names.append(m.config)
+        names = list(dict.fromkeys([*self.configurations, *(m.config for m in self.measurements)]))
         return names or [DEFAULT_CONFIG]
 
     @property
@@ -237,6 +237,10 @@ class SetBuilder:
         self.configurations: dict[str, dict[str, float]] = {}
         self.images: dict[str, str] = {}
         self.declared = set(model.measures) if model is not None else set()
+        # Diagonal covariances are shared between measurements with the same σ (read-only): a file
+        # of a million rows holds a handful of them, not a million.
+        self._covariances: dict[tuple[str, tuple[float, ...]], np.ndarray] = {}
+        self._configs: dict[str, str] = {}
 
     def known_value(self, name: str, value: Any, config: str | None, where: SourceSpan | None) -> None:
         if not name:
@@ -280,12 +284,14 @@ class SetBuilder:
                 hint="add it to the model's 'measure' statement if it is meant",
             )
         mm = self.models[kind]
+        kind = mm.kind  # one string shared by every measurement of the kind
         mid = str(record.get("id") or "").strip() or f"{kind}{index}"
         if mid in self.ids:
             first = self.ids[mid]
             raise MeasurementFileError(f"duplicate id '{mid}'" + (f" (first at {first})" if first else ""), where)
         self.ids[mid] = where
         config = str(record.get("config") or "").strip() or DEFAULT_CONFIG
+        config = self._configs.setdefault(config, config)  # one string per configuration
         refs: dict[str, str] = {}
         ref_index: dict[str, int] = {}
         for role in mm.roles:
@@ -325,7 +331,7 @@ class SetBuilder:
                 raise MeasurementFileError(message, where)
         if len(self.measurements) >= MAX_MEASUREMENTS:
             raise MeasurementFileError(f"more than {MAX_MEASUREMENTS} measurements", where)
-        self.measurements.append(Measurement(mid, kind, config, refs, value, cov, data, where))
+        self.measurements.append(Measurement(mid, kind, config, refs, value, cov, data or _NO_DATA, where))
 
     def _values(self, record, mm: MeasurementModel, where, factor: float) -> np.ndarray | None:
         if mm.implicit_value is not None:
@@ -388,7 +394,14 @@ class SetBuilder:
             if not s > 0:
                 raise MeasurementFileError(f"sigma must be positive, got {raw!r}", where)
             sigmas.append(s)
-        return np.diag(np.square(sigmas))
+        key = (mm.kind, tuple(sigmas))
+        shared = self._covariances.get(key)
+        if shared is None:
+            shared = np.diag(np.square(sigmas))
+            shared.flags.writeable = False
+            if len(self._covariances) < 10_000:
+                self._covariances[key] = shared
+        return shared
 
     def result(self) -> MeasurementSet:
         if not self.measurements:

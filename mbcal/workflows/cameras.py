@@ -362,6 +362,8 @@ def calibrate_cameras(
     initial: Mapping[str, float] | None = None,
     scale_covariance: bool = True,
     progress=None,
+    fit=None,
+    accept_poor_fit: bool = False,
 ) -> CameraCalibration:
     """Calibrate cameras from image points of planar targets (see the module doc).
 
@@ -373,6 +375,9 @@ def calibrate_cameras(
         Start from Zhang's closed-form solution (otherwise from the nominal values).
     scale_covariance : bool
         Scale σ by the reduced χ² (OpenCV's convention); the residuals then set the noise level.
+    fit, accept_poor_fit
+        The fit verdict's thresholds (:class:`mbcal.fit.FitConfig`) and whether to accept a poor fit
+        (see :class:`mbcal.api.CalibrateOptions`).
     """
     estimate = list(estimate) if estimate else default_unknowns(model, data)
     params = ParameterSet(model, estimate, configurations=data.config_names, per_configuration=data.configurations)
@@ -388,6 +393,8 @@ def calibrate_cameras(
         initial=start,
         scale_covariance=scale_covariance,
         progress=progress,
+        fit=fit,
+        accept_poor_fit=accept_poor_fit,
     )
     cams = sorted({m.refs["camera"] for m in data if m.kind == "image_point"}, key=model.camera_index)
     values = result.values

@@ -1,0 +1,713 @@
+"""The verdict on a calibration: is the fit consistent with the stated σ, and is every unknown well
+determined?  (docs/report.md, "The fit verdict".)
+
+**The χ² test.**  With the σ the measurements state, the whitened residuals of a correct model
+are standard normal, so at the estimate S = Σ r² (measurement and prior rows) follows the χ²
+distribution with m − n degrees of freedom (m residual rows, n the rank).  The fit is
+*inconsistent* when the upper tail probability p = P(χ² ≥ S) is below the threshold
+(:data:`DEFAULT_THRESHOLD`, 0.001): at that threshold a correct model and correct σ raise a false
+alarm once in a thousand solves.  A fit better than expected (small S) is not an error.
+
+**What to suspect** when it is inconsistent, worst first (by how much of S each explains), all
+found on the problem linearised at the estimate, where setting measurements aside and refitting
+is exact linear algebra:
+
+- *outlying measurements*: how much S drops when a measurement is deleted and the rest refitted
+  (its externally studentised residual) is tested against χ² with its number of values,
+  Bonferroni-corrected for the number of measurements, relative to a robust (median) estimate
+  of the noise level so that σ set uniformly too small does not make every measurement an
+  outlier; the worst significant one is set aside (a tenth of them per round when there are
+  many) and the search repeated until none is significant.  When they explain the excess, the
+  report recommends a robust loss.
+- *a structural error of the model*: the measurements are grouped by the frame (and its
+  enclosing frames) of what they measure, by sensor and by configuration; a group whose
+  measurements together are too large for the rest of the fit (a block deletion test,
+  Bonferroni-corrected for the number of groups), or of which most measurements came out as
+  outliers, is named: its object's dimensions or pose, or the sensor, are suspect.
+- *σ set too small*: what remains is uniformly too large; the factor is √(S/dof) of the rest.
+
+With a robust loss the outliers it down-weights are expected: the test then applies to the
+measurements left after setting the outliers aside.
+
+**Weak determination.**  Among the unknowns that have a search range, a direction (in units of
+their search ranges) whose σ exceeds :data:`DEFAULT_WEAK_FRACTION` (half) of the range, priors
+included — the measurements do not narrow what the model says the value could be: the
+observability analysis's "weakly observable" — or a condition number above
+:data:`DEFAULT_MAX_CONDITION` makes the result untrustworthy too.
+
+``accept`` (``--accept-poor-fit``) keeps the verdict in the report but lets the result count as
+usable: for scripts that want the estimate anyway.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy import stats
+
+from mbcal.measurements.registry import get_model
+from mbcal.observability import Observability, ObservabilityConfig
+from mbcal.problem import Problem
+
+__all__ = [
+    "DEFAULT_MAX_CONDITION",
+    "DEFAULT_THRESHOLD",
+    "DEFAULT_WEAK_FRACTION",
+    "FitConfig",
+    "FitVerdict",
+    "Suspect",
+    "WeakDirection",
+    "assess_fit",
+    "assess_plan",
+    "measurement_groups",
+]
+
+DEFAULT_THRESHOLD = 1e-3
+"""p-value below which a fit is inconsistent with the stated σ (and a suspect is significant)."""
+
+DEFAULT_WEAK_FRACTION = 0.5
+"""A direction of the unknowns with a search range is weakly determined when its σ exceeds this
+fraction of the search range (the width, upper − lower): half the range, the search half-range by
+which the observability analysis calls a direction weakly observable."""
+
+DEFAULT_MAX_CONDITION = 1e10
+"""Condition number (of the Jacobian scaled by the search half-ranges, priors included) above
+which the estimate is numerically fragile: its σ differ by more than ten orders of magnitude."""
+
+MIN_GROUP = 3
+"""A group needs at least this many measurements to be named as a structural error."""
+
+_RTOL = 1e-10  # singular values below this fraction of the largest count as zero
+_MAX_ROUNDS = 200  # rounds of the outlier search (each refits the linearised problem once)
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """Thresholds of the fit verdict (defaults documented in docs/report.md).
+
+    Attributes
+    ----------
+    threshold : float
+        Significance level: the fit is inconsistent when P(χ² ≥ S) < threshold; suspects are
+        named at the same level (Bonferroni-corrected).
+    weak_fraction : float
+        A direction of the unknowns with a search range is weakly determined when its σ exceeds
+        this fraction of the range.
+    max_condition : float
+        Condition number above which the estimate counts as weakly determined.
+    min_group : int
+        Smallest group of measurements that can be named as a structural error.
+    """
+
+    threshold: float = DEFAULT_THRESHOLD
+    weak_fraction: float = DEFAULT_WEAK_FRACTION
+    max_condition: float = DEFAULT_MAX_CONDITION
+    min_group: int = MIN_GROUP
+
+    def __post_init__(self) -> None:
+        if not 0 < self.threshold < 1:
+            raise ValueError(f"the fit threshold must lie between 0 and 1, got {self.threshold}")
+        if not self.weak_fraction > 0:
+            raise ValueError(f"weak_fraction must be positive, got {self.weak_fraction}")
+        if not self.max_condition > 1:
+            raise ValueError(f"max_condition must exceed 1, got {self.max_condition}")
+
+
+@dataclass(frozen=True)
+class Suspect:
+    """One explanation of an inconsistent fit.
+
+    ``kind``: ``outliers`` (``ids`` are the measurements, worst first), ``structural`` (``subject``
+    names the frame, sensor or configuration, ``ids`` its measurements) or ``sigma`` (``factor``:
+    how much larger the residuals are than the stated σ).  ``excess`` is the part of S it explains.
+    """
+
+    kind: str
+    subject: str
+    ids: tuple[str, ...]
+    excess: float
+    p_value: float | None
+    factor: float | None
+    description: str
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "kind": self.kind,
+            "subject": self.subject,
+            "ids": list(self.ids),
+            "excess_chi2": _num(self.excess),
+            "p_value": _num(self.p_value),
+            "factor": _num(self.factor),
+            "description": self.description,
+        }
+
+
+@dataclass(frozen=True)
+class WeakDirection:
+    """A poorly determined direction: its parameters (largest share first) and σ along it as a
+    fraction of their search ranges."""
+
+    names: tuple[str, ...]
+    sigma: float
+
+    def to_json(self) -> dict[str, Any]:
+        return {"names": list(self.names), "sigma_fraction": _num(self.sigma)}
+
+
+@dataclass(frozen=True)
+class FitVerdict:
+    """Whether a calibration (or a plan) can be trusted beyond convergence and observability."""
+
+    chi2: float | None
+    """S = Σ r² at the estimate with the stated σ (plain squares even with a robust loss);
+    None for a plan."""
+    dof: int
+    """Degrees of freedom m − n of the test (m rows, n the rank)."""
+    p_value: float | None
+    """P(χ²_dof ≥ S); None when not tested (a plan, or no redundancy)."""
+    threshold: float
+    consistent: bool
+    suspects: tuple[Suspect, ...] = ()
+    set_aside: tuple[str, ...] = ()
+    """With a robust loss: the outliers left out of the test."""
+    loss: str = "linear"
+    weak: tuple[WeakDirection, ...] = ()
+    weak_fraction: float = DEFAULT_WEAK_FRACTION
+    condition: float = 1.0
+    max_condition: float = DEFAULT_MAX_CONDITION
+    accepted: bool = False
+    notes: tuple[str, ...] = field(default=())
+
+    @property
+    def tested(self) -> bool:
+        return self.p_value is not None
+
+    @property
+    def well_determined(self) -> bool:
+        return not self.weak and not self.condition > self.max_condition
+
+    @property
+    def trustworthy(self) -> bool:
+        """Consistent and well determined (what ``accepted`` overrides)."""
+        return self.consistent and self.well_determined
+
+    @property
+    def ok(self) -> bool:
+        return self.trustworthy or self.accepted
+
+    @property
+    def recommend_robust(self) -> bool:
+        """Outliers explain the inconsistency (nothing structural, σ fine): use a robust loss."""
+        kinds = {s.kind for s in self.suspects}
+        return self.loss == "linear" and kinds == {"outliers"}
+
+    def headline(self) -> str:
+        """One line: consistent or not, with S, dof and p."""
+        if self.chi2 is None:
+            return "no measured values: the fit is not tested"
+        if self.p_value is None:
+            return f"S = {self.chi2:.6g} with no redundancy (0 degrees of freedom): the fit cannot be tested"
+        aside = f" after setting aside {len(self.set_aside)} outlier(s)" if self.set_aside else ""
+        what = "consistent with the stated σ" if self.consistent else "INCONSISTENT with the stated σ"
+        rel = "≥" if self.p_value >= self.threshold else "<"
+        shown = f"{self.p_value:.3g}" if self.p_value > 0 else "0 (below 1e-300)"
+        return (
+            f"{what}{aside}: S = {self.chi2:.6g} for {self.dof} degrees of freedom, "
+            f"p = {shown} {rel} {self.threshold:g}"
+        )
+
+    def lines(self) -> list[str]:
+        """The verdict as report lines."""
+        out = [f"fit: {self.headline()}"] if self.chi2 is not None else []
+        if self.suspects:
+            out.append("  suspects, worst first:")
+            for k, s in enumerate(self.suspects, 1):
+                out.append(f"    {k}. {s.description}")
+            if self.recommend_robust:
+                out.append(
+                    "  recommendation: the outliers explain it; solve with a robust loss (--loss huber or cauchy, "
+                    "CalibrateOptions(config=SolverConfig(loss='huber'))) or remove them"
+                )
+        for w in self.weak:
+            out.append(
+                f"  weakly determined ({', '.join(w.names)}): σ along this direction is {100 * w.sigma:.3g} % of the "
+                f"search range (threshold {100 * self.weak_fraction:g} %)"
+            )
+        if self.condition > self.max_condition:
+            out.append(
+                f"  ill-conditioned: condition number {self.condition:.3g} above {self.max_condition:.3g} "
+                "(the estimate is numerically fragile)"
+            )
+        out.extend(f"  {note}" for note in self.notes)
+        out.append(f"verdict: {self.verdict()}")
+        return out
+
+    def verdict(self) -> str:
+        """One phrase: trustworthy or not, and why."""
+        if self.trustworthy:
+            return "consistent and well determined" if self.chi2 is not None else "well determined"
+        why = []
+        if not self.consistent:
+            why.append("the fit is inconsistent with the stated σ")
+        if not self.well_determined:
+            why.append("weakly determined")
+        text = f"NOT trustworthy: {' and '.join(why)}"
+        if self.accepted:
+            return text + "; accepted anyway (--accept-poor-fit)"
+        return text + " (exit status 1; --accept-poor-fit accepts it)"
+
+    def text(self) -> str:
+        return "\n".join(self.lines())
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "chi2": _num(self.chi2),
+            "dof": self.dof,
+            "p_value": _num(self.p_value),
+            "threshold": self.threshold,
+            "tested": self.tested,
+            "consistent": self.consistent,
+            "loss": self.loss,
+            "set_aside": list(self.set_aside),
+            "suspects": [s.to_json() for s in self.suspects],
+            "recommend_robust": self.recommend_robust,
+            "weak": [w.to_json() for w in self.weak],
+            "weak_fraction": self.weak_fraction,
+            "condition_number": _num(self.condition),
+            "max_condition": self.max_condition,
+            "well_determined": self.well_determined,
+            "accepted": self.accepted,
+            "ok": self.ok,
+            "verdict": self.verdict(),
+        }
+
+
+def _num(v: float | None) -> float | None:
+    return float(v) if v is not None and np.isfinite(v) else None
+
+
+# ---- groups of measurements --------------------------------------------------------------------------
+
+
+def measurement_groups(problem: Problem) -> dict[str, list[int]]:
+    """Measurements grouped by what they share: the frame of each point, shape or frame they refer
+    to and the frames enclosing it (``frame room.box``), each sensor (``camera eyes.left``), and
+    each configuration when there are several.  Groups that hold every measurement are left out
+    (nothing to compare them with)."""
+    model = problem.model
+    ms = problem.measurements.measurements
+    groups: dict[str, list[int]] = {}
+
+    def add(label: str, i: int) -> None:
+        members = groups.setdefault(label, [])
+        if not members or members[-1] != i:
+            members.append(i)
+
+    def add_frame(frame: int, i: int) -> None:
+        while frame >= 0:
+            add(f"{model.frames[frame].keyword} {model.frames[frame].name}", i)
+            frame = model.frames[frame].parent
+
+    roles_of = {kind: get_model(kind).roles for kind in dict.fromkeys(m.kind for m in ms)}
+    several_configs = len({m.config for m in ms}) > 1
+    for i, m in enumerate(ms):
+        for role in roles_of[m.kind]:
+            name = m.refs.get(role.name)
+            if name is None:
+                continue
+            try:
+                if role.lookup == "point":
+                    add_frame(model.points[model.point_index(name)].frame, i)
+                elif role.lookup in ("frame", "object"):
+                    add_frame(model.frame_index(name), i)
+                elif role.lookup == "shape":
+                    add_frame(model.shapes[model.shape_index(name)].frame, i)
+                elif role.lookup == "camera":
+                    add(f"camera {model.resolve('camera', name)}", i)
+                elif role.lookup == "range":
+                    add(f"range sensor {model.resolve('range', name)}", i)
+            except Exception:  # noqa: BLE001 - a reference the problem resolved; be lenient here
+                continue
+        if several_configs:
+            add(f"configuration {m.config}", i)
+    n = len(ms)
+    return {label: members for label, members in groups.items() if len(set(members)) < n}
+
+
+# ---- linear algebra at the estimate ---------------------------------------------------------------------
+
+
+class _Linear:
+    """The problem linearised at the estimate, refitted on a subset of the measurements (priors always
+    kept): refit residuals and an orthonormal basis of the Jacobian's range on those rows."""
+
+    def __init__(self, r: np.ndarray, J: np.ndarray, rows: np.ndarray):
+        self.rows = rows
+        Jk, rk = J[rows], r[rows]
+        if Jk.shape[1] == 0 or Jk.shape[0] == 0:
+            self.U = np.zeros((len(rows), 0))
+            self.rank = 0
+            self.res = rk.copy()
+        else:
+            U, sv, _ = np.linalg.svd(Jk, full_matrices=False)
+            keep = sv > _RTOL * sv[0] if sv.size and sv[0] > 0 else np.zeros(sv.shape, dtype=bool)
+            self.U = U[:, keep]
+            self.rank = int(keep.sum())
+            self.res = rk - self.U @ (self.U.T @ rk)  # the linear refit's residual
+        self.S = float(self.res @ self.res)
+        self.position = np.full(r.shape[0], -1, dtype=np.int64)
+        self.position[rows] = np.arange(len(rows))
+
+    @property
+    def dof(self) -> int:
+        return len(self.rows) - self.rank
+
+    def deletion(self, block_rows: np.ndarray) -> tuple[float, int]:
+        """How much S drops when these rows are also set aside, and the degrees of freedom of that
+        drop (rows minus the rank lost): S − S₋B = r_Bᵀ(I − H_BB)⁻¹ r_B, by Woodbury in the rank's
+        dimension, with a pseudo-inverse where the block alone determines a direction."""
+        pos = self.position[block_rows]
+        pos = pos[pos >= 0]
+        if pos.size == 0:
+            return 0.0, 0
+        rB = self.res[pos]
+        QB = self.U[pos]
+        g = QB.T @ rB
+        M = np.eye(self.rank) - QB.T @ QB
+        w, V = np.linalg.eigh(M) if self.rank else (np.zeros(0), np.zeros((0, 0)))
+        lost = int(np.sum(w <= 1e-9))
+        inv = np.where(w > 1e-9, 1.0 / np.where(w > 1e-9, w, 1.0), 0.0)
+        proj = V.T @ g
+        return float(rB @ rB + proj @ (inv * proj)), int(pos.size - lost)
+
+    def deletions(self, blocks: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`deletion` of many small blocks (one measurement each), batched by block size in
+        the block's own dimension: r_Bᵀ(I − Q_B Q_Bᵀ)⁻¹ r_B."""
+        t = np.zeros(len(blocks))
+        d = np.zeros(len(blocks), dtype=np.int64)
+        by_size: dict[int, list[int]] = {}
+        for k, b in enumerate(blocks):
+            by_size.setdefault(len(b), []).append(k)
+        for size, idx in by_size.items():
+            if size == 0:
+                continue
+            pos = self.position[np.stack([blocks[k] for k in idx])]  # (N, size)
+            rB = self.res[pos]  # (N, size)
+            QB = self.U[pos]  # (N, size, rank)
+            A = np.eye(size) - QB @ np.swapaxes(QB, 1, 2)
+            w, V = np.linalg.eigh(A)
+            good = w > 1e-9
+            inv = np.where(good, 1.0 / np.where(good, w, 1.0), 0.0)
+            proj = np.einsum("nij,ni->nj", V, rB)
+            t[idx] = np.sum(inv * proj**2, axis=1)
+            d[idx] = np.sum(good, axis=1)
+        return t, d
+
+
+def _bonferroni(p: float | np.ndarray, count: int) -> Any:
+    return np.minimum(np.asarray(p) * max(count, 1), 1.0)
+
+
+def _robust_scale(t: np.ndarray, d: np.ndarray, floor: bool = True) -> float:
+    """The noise level² from the median of the deletion statistics (1 under a correct σ)."""
+    ok = d > 0
+    if not np.any(ok):
+        return 1.0
+    ratio = t[ok] / stats.chi2.median(d[ok])
+    s2 = float(np.median(ratio))
+    return max(s2, 1.0) if floor else max(s2, 1e-300)
+
+
+# ---- the verdict -------------------------------------------------------------------------------------------
+
+
+def _weak_directions(
+    obs: Observability, ranged: np.ndarray, fraction: float, coefficient_tol: float
+) -> tuple[list[WeakDirection], float]:
+    """Directions of the ranged unknowns whose σ (as a fraction of the search ranges, priors
+    included) exceeds ``fraction``, and the condition number of the observable part of the
+    covariance (every unknown, scaled as the observability analysis scales them)."""
+    cov = np.asarray(obs.covariance, dtype=float)
+    finite = np.isfinite(np.diag(cov))  # the unobservable unknowns' rows and columns are inf
+    scales = np.asarray(obs.scales, dtype=float)
+    condition = 1.0
+    if np.any(finite):
+        S = scales[finite]
+        lam = np.linalg.eigvalsh(cov[np.ix_(finite, finite)] / np.outer(S, S))
+        positive = lam[lam > 0]
+        condition = float(np.sqrt(positive.max() / positive.min())) if positive.size else 1.0
+    use = finite & ranged
+    out: list[WeakDirection] = []
+    if not np.any(use):
+        return out, condition
+    width = 2.0 * scales[use]  # the observability analysis scales a ranged unknown by half its range
+    Cs = cov[np.ix_(use, use)] / np.outer(width, width)
+    lam, V = np.linalg.eigh((Cs + Cs.T) / 2)
+    names = [n for n, u in zip(obs.names, use) if u]
+    for k in np.argsort(-lam):
+        sigma = float(np.sqrt(max(lam[k], 0.0)))
+        if not sigma > fraction:
+            break
+        v = V[:, k]
+        big = np.max(np.abs(v))
+        order = [j for j in np.argsort(-np.abs(v)) if abs(v[j]) >= coefficient_tol * big]
+        out.append(WeakDirection(tuple(names[j] for j in order), sigma))
+    return out, condition
+
+
+def _weak_part(
+    obs: Observability, ranged: np.ndarray, config: FitConfig, observability: ObservabilityConfig | None
+) -> dict[str, Any]:
+    tol = (observability or ObservabilityConfig()).coefficient_tol
+    weak, condition = _weak_directions(obs, ranged, config.weak_fraction, tol)
+    return {"weak": tuple(weak), "weak_fraction": config.weak_fraction, "condition": condition}
+
+
+def _ranged(params) -> np.ndarray:
+    lo, hi = np.asarray(params.lower, dtype=float), np.asarray(params.upper, dtype=float)
+    return np.isfinite(lo) & np.isfinite(hi) & (hi > lo)
+
+
+def assess_plan(
+    problem: Problem,
+    obs: Observability,
+    *,
+    config: FitConfig | None = None,
+    observability: ObservabilityConfig | None = None,
+    accept: bool = False,
+) -> FitVerdict:
+    """The verdict on a plan (no measured values): only whether every unknown is well determined."""
+    config = config or FitConfig()
+    return FitVerdict(
+        chi2=None,
+        dof=0,
+        p_value=None,
+        threshold=config.threshold,
+        consistent=True,
+        max_condition=config.max_condition,
+        accepted=accept,
+        **_weak_part(obs, _ranged(problem.params), config, observability),
+    )
+
+
+def assess_fit(
+    problem: Problem,
+    r: np.ndarray,
+    J: np.ndarray,
+    obs: Observability,
+    *,
+    loss: str = "linear",
+    config: FitConfig | None = None,
+    observability: ObservabilityConfig | None = None,
+    accept: bool = False,
+    groups: Mapping[str, Sequence[int]] | None = None,
+) -> FitVerdict:
+    """The verdict on a calibration at its estimate.
+
+    Parameters
+    ----------
+    problem : Problem
+    r, J : arrays
+        The whitened residual (measurement rows, then prior rows) and its Jacobian at the estimate.
+    obs : Observability
+        The analysis at the estimate (its rank, scales and covariance).
+    loss : str
+        The solver's loss: with a robust one, the outliers it down-weights are set aside first.
+    groups : mapping, optional
+        Label → measurement indices (default: :func:`measurement_groups`).
+    """
+    config = config or FitConfig()
+    alpha = config.threshold
+    r = np.asarray(r, dtype=float)
+    J = np.array(J, dtype=float)
+    held = [obs.names.index(name) for name in getattr(obs, "active_bounds", {}) if name in obs.names]
+    J[:, held] = 0.0  # unknowns held at an active hard bound are not refitted
+    ms = problem.measurements.measurements
+    ids = [m.id for m in ms]
+    blocks = [np.arange(s.start, s.stop) for s in problem.measurement_rows]
+    prior_rows = np.arange(problem.size, problem.n_residuals)
+    S = float(r @ r)
+    m_rows = problem.n_residuals
+    dof = max(m_rows - int(obs.rank_with_priors), 0)
+    weak = _weak_part(obs, _ranged(problem.params), config, observability)
+    common = dict(threshold=alpha, loss=str(loss), max_condition=config.max_condition, accepted=accept, **weak)
+    if dof == 0:
+        return FitVerdict(S, 0, None, consistent=True, **common)  # type: ignore[arg-type]
+    p = float(stats.chi2.sf(S, dof))
+    robust = str(loss) != "linear"
+    if p >= alpha and not robust:
+        return FitVerdict(S, dof, p, consistent=True, **common)  # type: ignore[arg-type]
+
+    def rows_of(members) -> np.ndarray:
+        parts = [blocks[i] for i in members]
+        return np.concatenate(parts) if parts else np.zeros(0, dtype=np.int64)
+
+    def linear(kept: np.ndarray) -> _Linear:
+        return _Linear(r, J, np.concatenate([rows_of(np.nonzero(kept)[0]), prior_rows]))
+
+    n_meas = len(ms)
+    normalized = np.array([float(np.sqrt(np.sum(r[b] ** 2))) for b in blocks])
+
+    # 1. Outliers: the worst significant one at a time (a tenth of them at a time when there are many),
+    #    each round refitted without those found so far.
+    kept = np.ones(n_meas, dtype=bool)
+    outliers: list[int] = []
+    s2 = 1.0
+    max_outliers = max(1, n_meas // 2)
+    for _ in range(_MAX_ROUNDS):
+        if len(outliers) >= max_outliers:
+            break
+        lin = linear(kept)
+        idx = np.nonzero(kept)[0]
+        t, d = lin.deletions([blocks[i] for i in idx])
+        s2 = _robust_scale(t, d)
+        with np.errstate(invalid="ignore"):
+            logp = np.where(d > 0, stats.chi2.logsf(t / s2, np.maximum(d, 1)), 0.0)
+        # Bonferroni in logs: p · count < alpha, without underflow for the grossest outliers.
+        significant = np.nonzero(logp + np.log(max(int(np.sum(d > 0)), 1)) < np.log(alpha))[0]
+        if significant.size == 0:
+            break
+        take = significant[np.argsort(logp[significant])][: max(1, significant.size // 10)]
+        take = take[: max_outliers - len(outliers)]
+        outliers.extend(int(idx[j]) for j in take)
+        kept[idx[take]] = False
+
+    # 2. Structural errors: groups mostly made of outliers, then groups significant on their own.
+    source = groups if groups is not None else measurement_groups(problem)
+    by_group: dict[str, list[int]] = {k: sorted(set(v)) for k, v in source.items() if len(set(v)) >= config.min_group}
+    outlier_set = set(outliers)
+    structural: list[tuple[str, list[int], float, float | None]] = []  # label, members, excess, p
+    attributed: set[int] = set()
+    concentrated = []
+    for label, members in by_group.items():
+        hit = outlier_set.intersection(members)
+        if len(hit) >= config.min_group and 2 * len(hit) >= len(members):
+            concentrated.append((len(hit) / len(members), -len(members), label))
+    for _, _, label in sorted(concentrated, reverse=True):
+        members = by_group[label]
+        hit = outlier_set.intersection(members) - attributed
+        if len(hit) < config.min_group:
+            continue  # its outliers are already explained by a more specific group
+        rest = np.ones(n_meas, dtype=bool)
+        rest[list(outlier_set - set(members))] = False
+        excess, _ = linear(rest).deletion(rows_of(members))
+        structural.append((label, members, excess, None))
+        attributed.update(members)
+    set_aside = np.ones(n_meas, dtype=bool)
+    set_aside[list(outlier_set | attributed)] = False
+    while True:
+        lin = linear(set_aside)
+        best = None
+        tested = 0
+        candidates = []
+        for label, members in by_group.items():
+            if any(label == s[0] for s in structural):
+                continue
+            live = [i for i in members if set_aside[i]]
+            if len(live) < config.min_group:
+                continue
+            drop, dd = lin.deletion(rows_of(live))
+            if dd <= 0 or lin.dof - dd <= 0:
+                continue
+            tested += 1
+            candidates.append((drop / dd, drop, dd, label, live))
+        for _intensity, drop, dd, label, live in sorted(candidates, key=lambda c: -c[0]):
+            pg = float(_bonferroni(stats.chi2.sf(drop / s2, dd), tested))
+            if pg < alpha:
+                best = (label, live, drop, pg)
+                break
+        if best is None:
+            break
+        label, live, drop, pg = best
+        structural.append((label, by_group[label], drop, pg))
+        attributed.update(live)
+        set_aside[live] = False
+    outliers = [i for i in outliers if i not in attributed]
+
+    # 3. What remains: σ too small?
+    rest = np.ones(n_meas, dtype=bool)
+    rest[outliers] = False
+    rest[list(attributed)] = False
+    lin_rest = linear(rest)
+    p_rest = float(stats.chi2.sf(lin_rest.S, lin_rest.dof)) if lin_rest.dof > 0 else 1.0
+
+    suspects: list[Suspect] = []
+    if outliers:
+        without = np.ones(n_meas, dtype=bool)
+        without[outliers] = False
+        excess = S - linear(without).S
+        shown = sorted(outliers, key=lambda i: -normalized[i])
+        listed = ", ".join(f"{ids[i]} ({normalized[i]:.3g}σ)" for i in shown[:10]) + (" …" if len(shown) > 10 else "")
+        suspects.append(
+            Suspect(
+                "outliers",
+                "measurements",
+                tuple(ids[i] for i in shown),
+                excess,
+                None,
+                None,
+                f"{len(shown)} outlying measurement(s): {listed} — setting them aside lowers S by {excess:.4g}",
+            )
+        )
+    for label, members, group_excess, p_group in structural:
+        big = sum(1 for i in members if normalized[i] > 3)
+        suspects.append(
+            Suspect(
+                "structural",
+                label,
+                tuple(ids[i] for i in members),
+                group_excess,
+                p_group,
+                None,
+                f"{label}: its {len(members)} measurements are systematically off ({big} beyond 3σ; setting "
+                f"them aside lowers S by {group_excess:.4g}) — a structural error of the model: check its "
+                "dimensions, its pose and the points on it",
+            )
+        )
+    if p_rest < alpha:
+        factor = float(np.sqrt(lin_rest.S / lin_rest.dof))
+        others = " the rest:" if outliers or structural else ""
+        suspects.append(
+            Suspect(
+                "sigma",
+                "σ",
+                (),
+                lin_rest.S - lin_rest.dof,
+                p_rest,
+                factor,
+                f"σ set too small:{others} the residuals are uniformly about {factor:.3g} × the stated σ "
+                f"(S = {lin_rest.S:.4g} for {lin_rest.dof} degrees of freedom) — if that is the real noise, state σ "
+                f"about {factor:.3g} times larger; otherwise an error common to all measurements (a parameter "
+                "held at a wrong value, a wrong sensor model)",
+            )
+        )
+    suspects.sort(key=lambda s: -s.excess)
+    notes: list[str] = []
+    if robust:
+        # The robust loss was asked to ignore outliers: the test covers what is left.
+        aside = tuple(ids[i] for i in sorted(outliers, key=lambda i: -normalized[i]))
+        chi2_rest = lin_rest.S if aside or structural else S
+        dof_rest = lin_rest.dof if aside or structural else dof
+        p_shown = p_rest if aside or structural else p
+        consistent = not structural and p_shown >= alpha
+        suspects = [s for s in suspects if s.kind != "outliers" or not consistent]
+        if aside:
+            notes.append(f"the {str(loss)} loss sets aside {len(aside)} outlier(s): {', '.join(aside[:10])}")
+        if not consistent and not suspects:
+            notes.append("no single measurement or group explains it: the model may be wrong everywhere")
+        return FitVerdict(
+            chi2_rest,
+            dof_rest,
+            p_shown,
+            consistent=consistent,
+            suspects=tuple(suspects),
+            set_aside=aside,
+            notes=tuple(notes),
+            **common,  # type: ignore[arg-type]
+        )
+    if not suspects:
+        notes.append("no single measurement or group explains it: the model may be wrong everywhere")
+    return FitVerdict(S, dof, p, consistent=False, suspects=tuple(suspects), notes=tuple(notes), **common)  # type: ignore[arg-type]

@@ -1,0 +1,311 @@
+"""Orientations without gimbal lock (issue 14, item 3): roll-pitch-yaw triples stepped as a rotation
+vector about the current orientation, their Jacobian, and the 89.9° pitch case."""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import numpy as np
+import pytest
+
+import mbcal
+from mbcal.modeling import rpy_triples
+from mbcal.problem import Problem
+from mbcal.solver import SolverConfig, least_squares
+
+from conftest import MEASUREMENTS, MODELS, ROOM_TRUTH
+
+jnp = jax.numpy
+D = math.radians
+ANGLES = ["room.roll", "room.pitch", "room.yaw"]
+
+
+def rotation(roll, pitch, yaw):
+    """Rz(yaw)·Ry(pitch)·Rx(roll) with numpy."""
+    cr, sr, cp, sp, cy, sy = (f(a) for a in (roll, pitch, yaw) for f in (np.cos, np.sin))
+    Rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
+    Ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
+    Rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
+    return Rz @ Ry @ Rx
+
+
+def exp_so3(w):
+    theta = np.linalg.norm(w)
+    K = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+    if theta < 1e-12:
+        return np.eye(3) + K
+    return np.eye(3) + np.sin(theta) / theta * K + (1 - np.cos(theta)) / theta**2 * K @ K
+
+
+def angle_between(Ra, Rb):
+    return math.degrees(math.acos(np.clip((np.trace(Ra.T @ Rb) - 1) / 2, -1, 1)))
+
+
+# ---- which orientations -------------------------------------------------------------------------------
+
+
+def test_the_rooms_orientation_is_found(room):
+    (triple,) = rpy_triples(room)
+    assert [room.params[i].name for i in triple.params] == ANGLES
+    assert len(triple.nodes) == 1 and triple.nodes[0].op == "rpy"
+
+
+@pytest.mark.parametrize(
+    "text, found",
+    [
+        ("frame f at rpy(a, b, c)", [("a", "b", "c")]),
+        ("frame f at pose(1 m, 0, 0, a, b, c)\nframe g at rpy(a, b, c) * rot_x(d)", [("a", "b", "c")]),
+        ("frame f at rpy(a, b, c)\nframe g at rot_x(a)", []),  # 'a' is used elsewhere too
+        ("frame f at rpy(a, b, c)\nframe g at rpy(c, b, a)", []),  # the same angles in other roles
+        ("frame f at rpy(a, b, d)\nframe g at rpy(a, b, c)", []),
+        ("frame f at rpy(a, a, c)", []),
+        ("frame f at rpy(-a, b, c)", []),  # an angle that is not a parameter by itself
+        ("frame f at rpy(a, 10 deg, c)", []),
+    ],
+)
+def test_only_triples_of_parameters_used_nowhere_else_qualify(text, found):
+    model = mbcal.load_model_text("param a = 0 deg\nparam b = 0 deg\nparam c = 0 deg\nparam d = 0 deg\n" + text)
+    assert [tuple(model.params[i].name for i in t.params) for t in rpy_triples(model)] == found
+
+
+@pytest.fixture(scope="module")
+def room_data(room):
+    plan = mbcal.read_measurements(MEASUREMENTS / "room_plan.csv", room)
+    return mbcal.simulate(room, plan, ROOM_TRUTH, noise=1.0, seed=11)
+
+
+def test_all_three_angles_must_be_estimated_without_limits_or_priors(room, room_data):
+    assert Problem(room, room_data, ["room.*"]).orientation_names == [tuple(ANGLES)]
+    assert Problem(room, room_data, ["room.x", "room.roll", "room.pitch"]).local is None
+    limited = mbcal.load_model_text(
+        (MODELS / "teleexistence.mdl")
+        .read_text(encoding="utf-8")
+        .replace("param room.yaw   = 0 deg in [-5 deg, 5 deg]", "param room.yaw = 0 deg in [-5 deg, 5 deg] bounded"),
+        str(MODELS / "teleexistence.mdl"),
+    )
+    assert limited.param("room.yaw").limited
+    assert Problem(limited, room_data, ["room.*"]).local is None
+    prior = mbcal.load_model_text(
+        (MODELS / "teleexistence.mdl")
+        .read_text(encoding="utf-8")
+        .replace(
+            "param room.yaw   = 0 deg in [-5 deg, 5 deg]", "param room.yaw = 0 deg in [-5 deg, 5 deg] sigma 1 deg"
+        ),
+        str(MODELS / "teleexistence.mdl"),
+    )
+    assert Problem(prior, room_data, ["room.*"]).local is None
+    assert Problem(prior, room_data, ["room.*"], priors=False).local is not None
+
+
+PER_VIEW = """
+param tag.x = 0 m per configuration
+param tag.roll = 0 deg per configuration
+param tag.pitch = 0 deg per configuration
+param tag.yaw = 0 deg per configuration
+object tag at pose(tag.x, 0, 1 m, tag.roll, tag.pitch, tag.yaw) {
+  point a = (10 cm, 0, 0)
+  point b = (0, 20 cm, 0)
+  point c = (0, 0, 30 cm)
+}
+"""
+
+
+def per_view_records():
+    return [
+        {"kind": "point3d", "point": f"tag.{p}", "config": c, "sigma": 0.001} for c in ("one", "two") for p in "abc"
+    ]
+
+
+@pytest.fixture(scope="module")
+def per_view():
+    model = mbcal.load_model_text(PER_VIEW)
+    plan = mbcal.measurements_from_records(per_view_records(), model)
+    truth = {
+        "tag.roll@one": D(20),
+        "tag.pitch@one": D(89.9),
+        "tag.yaw@one": D(-40),
+        "tag.roll@two": D(-5),
+        "tag.pitch@two": D(30),
+        "tag.yaw@two": D(170),
+        "tag.x@two": 0.1,
+    }
+    data = mbcal.simulate(model, plan, {}, noise=0)
+    problem = Problem(model, data, ["tag.*"])
+    x = problem.params.from_dict(truth)
+    return model, plan, problem, x
+
+
+def test_per_configuration_orientations_get_one_rotation_each(per_view):
+    model, plan, problem, _ = per_view
+    assert problem.orientation_names == [
+        ("tag.roll@one", "tag.pitch@one", "tag.yaw@one"),
+        ("tag.roll@two", "tag.pitch@two", "tag.yaw@two"),
+    ]
+    assert Problem(model, plan, ["tag.*@two"]).orientation_names == [("tag.roll@two", "tag.pitch@two", "tag.yaw@two")]
+    mixed = mbcal.load_model_text(PER_VIEW.replace("param tag.yaw = 0 deg per configuration", "param tag.yaw = 0 deg"))
+    mixed_plan = mbcal.measurements_from_records(per_view_records(), mixed)
+    assert Problem(mixed, mixed_plan, ["tag.*"]).local is None  # one yaw in two rotations: plain steps
+
+
+# ---- the step and its Jacobian -------------------------------------------------------------------------
+
+
+def local_jacobian(problem, x):
+    y, known = jnp.asarray(np.nan_to_num(problem.y)), jnp.asarray(problem.params.known)
+    fun = jax.jit(lambda xx, d: problem.local.residual(xx, d, y, known))
+    J = jax.jit(jax.jacfwd(lambda xx, d: problem.local.residual(xx, d, y, known), argnums=1))
+    n = len(x)
+    return np.asarray(fun(jnp.asarray(x), jnp.zeros(n))), np.asarray(J(jnp.asarray(x), jnp.zeros(n)))
+
+
+def finite_differences(problem, x, h=1e-6):
+    """∂r(x ⊞ d)/∂d by central differences through the step itself and the plain residual."""
+    plus = jax.jit(problem.local.plus)
+    n = len(x)
+    columns = []
+    for i in range(n):
+        e = np.zeros(n)
+        e[i] = h
+        forward = problem.residual(np.asarray(plus(jnp.asarray(x), jnp.asarray(e))))
+        backward = problem.residual(np.asarray(plus(jnp.asarray(x), jnp.asarray(-e))))
+        columns.append((forward - backward) / (2 * h))
+    return np.stack(columns, axis=1)
+
+
+@pytest.mark.parametrize("pitch", [10.0, 89.9, 90.0, -90.0])
+def test_the_jacobian_in_the_rotation_vector_matches_finite_differences(room, room_data, pitch):
+    problem = Problem(room, room_data, ["room.*", "lever.angle"])
+    x = problem.params.x0.copy()
+    names = problem.params.names
+    for name, value in zip(ANGLES, (D(20), D(pitch), D(-30))):
+        x[names.index(name)] = value
+    r, J = local_jacobian(problem, x)
+    np.testing.assert_allclose(r, problem.residual(x), rtol=1e-9, atol=1e-6)
+    Jfd = finite_differences(problem, x)
+    assert np.all(np.isfinite(J))
+    assert np.max(np.abs(J - Jfd)) <= 1e-6 * np.max(np.abs(J))
+    # Regular at the lock: the three rotation columns stay independent (the angles' would not).
+    rotation_columns = J[:, [names.index(a) for a in ANGLES]]
+    assert np.linalg.matrix_rank(rotation_columns, tol=1e-6 * np.abs(rotation_columns).max()) == 3
+
+
+def test_the_jacobian_per_configuration_matches_finite_differences(per_view):
+    _, _, problem, x = per_view
+    r, J = local_jacobian(problem, x)
+    np.testing.assert_allclose(r, problem.residual(x), atol=1e-9)
+    assert np.max(np.abs(J - finite_differences(problem, x))) <= 1e-6 * np.max(np.abs(J))
+
+
+@pytest.mark.parametrize("angles", [(20.0, 89.9, -40.0), (0.0, 90.0, 0.0), (170.0, -30.0, -175.0), (5.0, -90.0, 60.0)])
+def test_the_step_rotates_about_the_current_orientation(room, room_data, angles):
+    problem = Problem(room, room_data, ["room.*"])
+    names = problem.params.names
+    idx = [names.index(a) for a in ANGLES]
+    x = problem.params.x0.copy()
+    x[idx] = np.radians(angles)
+    plus = jax.jit(problem.local.plus)
+    assert np.max(np.abs(np.asarray(plus(jnp.asarray(x), jnp.zeros(len(x)))) - x)) < 1e-12  # x ⊞ 0 = x
+    rng = np.random.default_rng(1)
+    for _ in range(5):
+        d = rng.normal(scale=0.3, size=len(x))
+        moved = np.asarray(plus(jnp.asarray(x), jnp.asarray(d)))
+        expected = rotation(*x[idx]) @ exp_so3(d[idx])
+        np.testing.assert_allclose(rotation(*moved[idx]), expected, atol=1e-12)
+        others = [i for i in range(len(x)) if i not in idx]
+        np.testing.assert_array_equal(moved[others], x[others] + d[others])
+        assert np.all(np.abs(moved[idx] - x[idx]) < math.pi + 0.5)  # angles move continuously (mod 2π)
+
+
+# ---- the 89.9° case ------------------------------------------------------------------------------------
+
+TILTED = {
+    "room.x": 0.02,
+    "room.y": 0.05,
+    "room.z": 0.015,
+    "room.roll": D(25),
+    "room.pitch": D(89.9),
+    "room.yaw": D(-40),
+}
+
+
+@pytest.fixture(scope="module")
+def survey(room):
+    """3-D positions of ten points of the room (a laser tracker's survey), exact, at 89.9° pitch."""
+    points = [p.name for p in room.points if p.name.startswith("room.")][:10]
+    plan = mbcal.measurements_from_records([{"kind": "point3d", "point": p, "sigma": 0.001} for p in points], room)
+    return mbcal.simulate(room, plan, TILTED, noise=0)
+
+
+def test_at_89_9_degrees_pitch_the_rotation_step_converges_where_angle_steps_crawl(room, survey):
+    problem = Problem(room, survey, ["room.*"])
+    names = problem.params.names
+    idx = [names.index(a) for a in ANGLES]
+    truth = rotation(*(TILTED[a] for a in ANGLES))
+    # Sixteen starts 5° to 60° away from the true orientation (whose angles may be far from the truth's).
+    rng = np.random.default_rng(0)
+    starts = np.tile(problem.params.x0, (16, 1))
+    for k in range(16):
+        axis = rng.normal(size=3)
+        start = truth @ exp_so3(D(rng.uniform(5, 60)) * axis / np.linalg.norm(axis))
+        yaw, pitch = math.atan2(start[1, 0], start[0, 0]), math.asin(-start[2, 0])
+        roll = math.atan2(start[2, 1], start[2, 2])
+        starts[k, idx] = roll, pitch, yaw
+    args = (problem.y, problem.params.known)
+
+    def solve(manifold, budget):
+        config = SolverConfig(manifold=manifold, max_iterations=budget)
+        return least_squares(problem.residual_function, starts, args=args, config=config, local=problem.local)
+
+    def errors(fit):
+        return np.array([angle_between(rotation(*x[idx]), truth) for x in fit.x])
+
+    steps = solve(True, 12)
+    assert all(s.converged for s in steps.statuses())
+    assert np.all(errors(steps) < 1e-6)  # degrees
+    assert np.all(steps.cost < 1e-12)
+    plain = solve(False, 12)  # the same budget: the angles crawl
+    assert not any(s.converged for s in plain.statuses())
+    assert np.median(errors(plain)) > 1e-3 and np.median(plain.cost) > 1e-6
+    patient = solve(False, 100)  # they get there, in about twice the iterations or more
+    assert np.median(patient.iterations) >= 2 * np.median(steps.iterations)
+
+
+@pytest.mark.slow
+def test_calibrate_keeps_the_users_angles_at_89_9_degrees(room, survey):
+    steps = mbcal.calibrate(room, survey, ["room.*"], restarts=1, suggest=False)  # from the nominal pose
+    assert steps.converged and steps.problem.orientation_names == [tuple(ANGLES)]
+    for name, true in TILTED.items():
+        assert steps.values[name] == pytest.approx(true, abs=1e-7), name  # the angles themselves, not 180° off
+    plain = mbcal.calibrate(room, survey, ["room.*"], restarts=1, suggest=False, config=SolverConfig(manifold=False))
+    assert steps.solver.iterations[0] < plain.solver.iterations[0]
+    budget = SolverConfig(max_iterations=int(steps.solver.iterations[0]))
+    assert mbcal.calibrate(room, survey, ["room.*"], restarts=1, suggest=False, config=budget).converged
+    crawl = SolverConfig(manifold=False, max_iterations=int(steps.solver.iterations[0]))
+    assert not mbcal.calibrate(room, survey, ["room.*"], restarts=1, suggest=False, config=crawl).converged
+
+
+def test_problems_without_such_orientations_are_solved_bit_for_bit_as_before(room, room_data):
+    for estimate in (["room.x", "room.y", "room.yaw"], ["room.*"]):
+        problem = Problem(room, room_data, estimate)
+        starts = np.tile(problem.params.x0, (4, 1)) + np.linspace(0, 0.01, 4)[:, None]
+        args = (problem.y, problem.params.known)
+        plain = least_squares(problem.residual_function, starts, args=args)
+        offered = least_squares(
+            problem.residual_function, starts, args=args, local=problem.local, config=SolverConfig(manifold=False)
+        )
+        for field in ("x", "cost", "iterations", "status"):
+            np.testing.assert_array_equal(getattr(plain, field), getattr(offered, field))
+        if problem.local is None:  # nothing to offer: the manifold setting changes nothing
+            same = least_squares(problem.residual_function, starts, args=args, local=problem.local)
+            np.testing.assert_array_equal(same.x, plain.x)
+
+
+def test_the_rotation_step_reaches_the_same_estimate_as_angle_steps_away_from_the_lock(room, room_data):
+    steps = mbcal.calibrate(room, room_data, ["room.*"], restarts=4, seed=0, suggest=False)
+    plain = mbcal.calibrate(
+        room, room_data, ["room.*"], restarts=4, seed=0, suggest=False, config=SolverConfig(manifold=False)
+    )
+    for name, value in plain.values.items():
+        assert steps.values[name] == pytest.approx(value, abs=1e-7)
+        assert steps.std[name] == pytest.approx(plain.std[name], rel=1e-6)

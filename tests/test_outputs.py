@@ -1,0 +1,58 @@
+"""Files mbcal writes: atomic, and with the permissions the user's umask gives (not 0600)."""
+
+from __future__ import annotations
+
+import os
+import stat
+
+import pytest
+
+from mbcal.cli import main
+from mbcal.outputs import atomic_write, atomic_writer, current_umask
+
+from conftest import ROOT
+
+
+def mode(path) -> int:
+    return stat.S_IMODE(os.stat(path).st_mode)
+
+
+@pytest.fixture
+def umask():
+    """Set the process's umask for one test and restore it afterwards."""
+    old = os.umask(0o022)
+    os.umask(old)
+    yield lambda mask: os.umask(mask)
+    os.umask(old)
+
+
+@pytest.mark.parametrize("mask, expected", [(0o022, 0o644), (0o077, 0o600), (0o002, 0o664)])
+def test_new_files_get_the_permissions_of_the_umask(tmp_path, umask, mask, expected):
+    umask(mask)
+    assert current_umask() == mask
+    atomic_write(tmp_path / "text.txt", "hello\n")
+    with atomic_writer(tmp_path / "data.bin") as handle:
+        handle.write(b"\x00\x01")
+    # A command's output goes the same way.
+    assert main(["convert", str(ROOT / "tests" / "data" / "arm7.urdf"), "-o", str(tmp_path / "arm7.mdl"), "-q"]) == 0
+    for name in ("text.txt", "data.bin", "arm7.mdl"):
+        assert mode(tmp_path / name) == expected, (name, oct(mode(tmp_path / name)))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["arm7.mdl", "data.bin", "text.txt"]  # no .part left
+
+
+def test_a_replaced_file_keeps_its_permissions(tmp_path, umask):
+    umask(0o022)
+    target = tmp_path / "report.json"
+    target.write_text("old")
+    os.chmod(target, 0o640)
+    atomic_write(target, "new")
+    assert target.read_text() == "new" and mode(target) == 0o640
+
+
+def test_a_failed_write_leaves_the_old_file_and_no_temporary_one(tmp_path):
+    target = tmp_path / "out.txt"
+    target.write_text("old")
+    with pytest.raises(RuntimeError), atomic_writer(target, "w") as handle:
+        handle.write("partial")
+        raise RuntimeError("interrupted")
+    assert target.read_text() == "old" and [p.name for p in tmp_path.iterdir()] == ["out.txt"]
