@@ -26,7 +26,7 @@ from mbcal.observability import (
     ObservabilityConfig,
     PointUncertainty,
     analyze,
-    point_uncertainty,
+    point_uncertainties,
     rank_candidates,
     unknown_scales,
 )
@@ -205,14 +205,16 @@ def _point_uncertainties(
     cfg_idx = np.array([configs.index(c) for _, c in wanted], dtype=np.int64)
     P, J = problem.point_jacobian(x, cfg_idx, idx)  # (k, 3), (k, 3, n)
     origins = problem.frame_origins(x)
-    out = []
-    for k, ((name, cfg), cam) in enumerate(wanted.items()):
+    items: list[tuple[str, str, str | None]] = []
+    eyes: list[np.ndarray | None] = []
+    for (name, cfg), cam in wanted.items():
         cam = camera or cam or (model.cameras[0].name if model.cameras else None)
         eye = None
         if cam is not None:
             eye = origins[configs.index(cfg), model.cameras[model.camera_index(cam)].frame]
-        out.append(point_uncertainty(name, cfg, cam, P[k], J[k], covariance, eye))
-    return out
+        items.append((name, cfg, cam))
+        eyes.append(eye)
+    return point_uncertainties(items, P, J, covariance, eyes)
 
 
 def _candidate_rows(problem: Problem, x: np.ndarray, measured_keys: set) -> list[tuple[dict[str, Any], np.ndarray]]:

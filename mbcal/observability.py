@@ -33,6 +33,7 @@ __all__ = [
     "unknown_scales",
     "PointUncertainty",
     "point_uncertainty",
+    "point_uncertainties",
 ]
 
 
@@ -231,7 +232,9 @@ def _spectrum(J: np.ndarray, n: int, rtol: float) -> tuple[np.ndarray, np.ndarra
     the mask of those above ``rtol · σ_max``."""
     if J.shape[0] == 0:
         return np.zeros(n), np.eye(n), np.zeros(n, dtype=bool)
-    _, sv, Vt = np.linalg.svd(J, full_matrices=True)
+    # Only V is needed: with at least n rows the thin SVD has all n right singular vectors and
+    # skips U (m × m: the cost of the analysis for a tall Jacobian).
+    _, sv, Vt = np.linalg.svd(J, full_matrices=J.shape[0] < J.shape[1])
     full = np.zeros(n)
     full[: len(sv)] = sv[:n]
     smax = full.max() if n else 0.0
@@ -508,3 +511,57 @@ def point_uncertainty(
         cov = Ju @ covariance[np.ix_(used, used)] @ Ju.T
     par, perp = split_line_of_sight(cov, position, eye)
     return PointUncertainty(name, configuration, camera, position, cov, par, perp)
+
+
+def point_uncertainties(
+    points: Sequence[tuple[str, str, str | None]],
+    positions: np.ndarray,
+    J_points: np.ndarray,
+    covariance: np.ndarray,
+    eyes: Sequence[np.ndarray | None],
+) -> list[PointUncertainty]:
+    """:func:`point_uncertainty` for many points at once: ``points`` (name, configuration, camera),
+    positions (k, 3), Jacobians (k, 3, n), eyes (k entries, None: no line of sight).
+
+    Points whose Jacobians use the same unknowns are propagated together (one batched product
+    per pattern, e.g. per view of a target), and the line-of-sight split is batched too."""
+    k = len(points)
+    if k == 0:
+        return []
+    J = np.asarray(J_points, dtype=float)
+    P = np.asarray(positions, dtype=float)
+    used = np.any(J != 0, axis=1)  # (k, n)
+    covs = np.empty((k, 3, 3))
+    patterns: dict[bytes, list[int]] = {}
+    for i in range(k):
+        patterns.setdefault(used[i].tobytes(), []).append(i)
+    for members in patterns.values():
+        idx = np.asarray(members)
+        mask = used[idx[0]]
+        block = covariance[np.ix_(mask, mask)]
+        if not np.all(np.isfinite(block)):
+            covs[idx] = np.inf
+        else:
+            Ju = J[idx][:, :, mask]
+            covs[idx] = Ju @ block @ np.swapaxes(Ju, 1, 2)
+    par = np.full(k, np.inf)
+    perp = np.full(k, np.inf)
+    finite = np.all(np.isfinite(covs), axis=(1, 2))
+    has_eye = np.array([e is not None for e in eyes], dtype=bool)
+    plain = finite & ~has_eye
+    if plain.any():
+        par[plain] = np.nan
+        perp[plain] = np.sqrt(np.maximum(np.linalg.eigvalsh(covs[plain]).max(axis=1), 0.0))
+    sight = finite & has_eye
+    if sight.any():
+        E = np.stack([np.asarray(eyes[int(i)], dtype=float) for i in np.nonzero(sight)[0]])
+        u = P[sight] - E
+        u = u / np.linalg.norm(u, axis=1, keepdims=True)
+        C = covs[sight]
+        par[sight] = np.sqrt(np.maximum(np.einsum("ki,kij,kj->k", u, C, u), 0.0))
+        Pr = np.eye(3) - u[:, :, None] * u[:, None, :]
+        perp[sight] = np.sqrt(np.maximum(np.linalg.eigvalsh(Pr @ C @ Pr).max(axis=1), 0.0))
+    return [
+        PointUncertainty(name, cfg, cam, P[i], covs[i], float(par[i]), float(perp[i]))
+        for i, (name, cfg, cam) in enumerate(points)
+    ]

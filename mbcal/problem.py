@@ -298,6 +298,7 @@ class Problem:
         if runtime_shapes() or runtime_functions():
             return None
         h = Hasher().add(code_fingerprint(), self.size, self.params.names, self.params._source)
+        h.add(self.model.text_digest)  # models from text: the text itself (files are hashed below)
         for path in self.model.files:
             h.add(str(path)).add_file(path)
         for shape in self.model.shapes:

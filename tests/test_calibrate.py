@@ -280,3 +280,17 @@ def test_points_on_surfaces_recover_the_room_pose(room):
     result = mbcal.calibrate(room, data, ["room.*"], restarts=8, seed=3)
     assert result.converged
     assert_within_3_sigma(result, truth)
+
+
+def test_models_from_text_with_the_same_structure_do_not_share_a_compiled_program():
+    # Two texts that differ only in a constant: the cache key (fingerprint) must tell them apart,
+    # or a second process could solve the second model with the first one's compiled program.
+    from mbcal.problem import Problem
+
+    def problem(x: str) -> Problem:
+        model = mbcal.load_model_text(f"param a = 1 m in [0 m, 2 m]\npoint p = (a, {x}, 0)\nmeasure point3d")
+        plan = mbcal.measurements_from_records([{"kind": "point3d", "point": "p", "sigma": 0.01}], model)
+        return Problem(model, plan, ["a"])
+
+    assert problem("0.5 m").fingerprint() != problem("0.7 m").fingerprint()
+    assert problem("0.5 m").fingerprint() == problem("0.5 m").fingerprint()

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import os
 from pathlib import Path
 
@@ -46,9 +47,11 @@ def load_model_text(text: str, path: str = "<string>") -> Model:
     try:
         statements = parse_text_with_includes(text, path)
         with deep_recursion():
-            return check(statements, path)
+            model = check(statements, path)
     except RecursionError:
         raise _too_deep(path) from None
+    # The text is not in a file the cache could hash: its digest stands for it.
+    return dataclasses.replace(model, text_digest=hashlib.sha256(text.encode("utf-8")).hexdigest())
 
 
 def load_urdf(path: str | os.PathLike[str]) -> Model:

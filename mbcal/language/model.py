@@ -211,6 +211,9 @@ class Model:
     templates: tuple[str, ...] = ()
     files: tuple[str, ...] = ()
     warnings: tuple[str, ...] = ()
+    # SHA-256 of the text a model was checked from when it was not read from a file
+    # (load_model_text): the text is part of the model's identity for the compiled-program cache.
+    text_digest: str = ""
     _index: dict[str, dict[str, int]] = field(default_factory=dict, repr=False)
     _suffixes: dict[str, dict[str, list[str]]] = field(default_factory=dict, repr=False)
 

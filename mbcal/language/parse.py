@@ -15,6 +15,7 @@ import lark
 from lark import Lark, Token, Transformer, v_args
 from lark.exceptions import UnexpectedCharacters, UnexpectedEOF, UnexpectedInput, UnexpectedToken, VisitError
 
+from mbcal.cache import cache_dir
 from mbcal.errors import IncludeError, MbcalError, MdlSyntaxError, SourceSpan, remember_source
 from mbcal.language import ast
 from mbcal.resources import grammar_path
@@ -55,7 +56,28 @@ def grammar_text() -> str:
 
 @functools.lru_cache(maxsize=1)
 def _parser() -> Lark:
-    return Lark(grammar_text(), parser="lalr", lexer="contextual", propagate_positions=True, maybe_placeholders=True)
+    # Building the LALR tables takes ~0.1 s of every command's start-up: Lark keeps them in a file
+    # in mbcal's cache folder, checked against a hash of the grammar, options and Lark's version
+    # (a stale or unreadable file is rebuilt).
+    return Lark(
+        grammar_text(),
+        parser="lalr",
+        lexer="contextual",
+        propagate_positions=True,
+        maybe_placeholders=True,
+        cache=_parser_cache_file() or False,
+    )
+
+
+def _parser_cache_file() -> str | None:
+    folder = cache_dir()
+    if folder is None:
+        return None
+    try:
+        (folder / "lark").mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return None  # an unwritable home: build the tables every time
+    return str(folder / "lark" / "mdl-grammar.lark")
 
 
 # Readable names for terminals in "expected ..." messages.
