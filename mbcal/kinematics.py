@@ -36,6 +36,7 @@ import numpy as np
 
 from mbcal._jax import jax, jnp
 from mbcal.errors import KinematicsError, ParameterError, UnknownNameError, UnreachableError, suggest
+from mbcal.geometry.transforms import rpy_from_matrix
 from mbcal.language import ir, soa
 from mbcal.language import soa_math as sm
 from mbcal.language.graph import TRANSFORM, ParamRef, depends_on
@@ -710,7 +711,7 @@ class Kinematics:
             p, R = self._pose_single(theta)
             r = p - data[:3]
             if with_orientation:
-                Rt = _rotvec_matrix(data[3:6])
+                Rt = jnp.stack([jnp.stack(row) for row in sm.rotation_vector((data[3], data[4], data[5]))])
                 r = jnp.concatenate([r, (weight / math.sqrt(2.0)) * (R - Rt).reshape(9)])
             return r
 
@@ -790,7 +791,7 @@ class Kinematics:
                 title="\nθ",
             )
         )
-        rpy = _rpy_deg(R)
+        rpy = np.degrees(rpy_from_matrix(R))
         lines.append(
             f"\nf(θ): position ({', '.join(fmt(v, 6) for v in p)}) m, "
             f"roll/pitch/yaw ({', '.join(fmt(v, 5) for v in rpy)}) deg"
@@ -1196,26 +1197,8 @@ def _rotvec(R: np.ndarray) -> np.ndarray:
     return angle * w / (2.0 * sin)
 
 
-def _rotvec_matrix(v: Array) -> Array:
-    """Rodrigues' formula for a rotation vector (JAX; v is data, never differentiated)."""
-    angle = jnp.sqrt(jnp.sum(v * v))
-    safe = jnp.where(angle > 0, angle, 1.0)
-    k = v / safe
-    K = jnp.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    R = jnp.eye(3) + jnp.sin(angle) * K + (1.0 - jnp.cos(angle)) * (K @ K)
-    return jnp.where(angle > 0, R, jnp.eye(3))
-
-
 def _angle_between(R: np.ndarray, Rt: np.ndarray) -> float:
     return float(np.linalg.norm(_rotvec(np.asarray(Rt).T @ np.asarray(R))))
-
-
-def _rpy_deg(R: np.ndarray) -> np.ndarray:
-    """Roll, pitch, yaw (deg) with R = Rz(yaw) Ry(pitch) Rx(roll)."""
-    pitch = math.atan2(-R[2, 0], math.hypot(R[0, 0], R[1, 0]))
-    roll = math.atan2(R[2, 1], R[2, 2])
-    yaw = math.atan2(R[1, 0], R[0, 0])
-    return np.degrees([roll, pitch, yaw])
 
 
 def _shown(row: np.ndarray, whole: np.ndarray) -> list[float]:

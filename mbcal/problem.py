@@ -23,6 +23,7 @@ import numpy as np
 from mbcal._jax import jax, jnp
 from mbcal.cache import Hasher, code_fingerprint, enable_compilation_cache
 from mbcal.errors import SolverError
+from mbcal.geometry import transforms as geo
 from mbcal.geometry.shapes import runtime_shapes
 from mbcal.language import soa_math as sm
 from mbcal.language.functions import runtime_functions
@@ -395,14 +396,7 @@ class OrientationSteps:
 
 def _rpy_matrix(angles: Array) -> Array:
     """(K, 3, 3) Rz(yaw)·Ry(pitch)·Rx(roll) of (K, 3) angles."""
-    cr, cp, cy = (jnp.cos(angles[:, k]) for k in range(3))
-    sr, sp, sy = (jnp.sin(angles[:, k]) for k in range(3))
-    rows = [
-        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-        [-sp, cp * sr, cp * cr],
-    ]
-    return jnp.stack([jnp.stack(row, axis=-1) for row in rows], axis=-2)
+    return jax.vmap(lambda a: geo.rpy(jnp, a[0], a[1], a[2])[:3, :3])(angles)
 
 
 def _exp_so3(w: Array) -> Array:

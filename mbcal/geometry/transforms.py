@@ -14,6 +14,7 @@ Conventions
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -21,6 +22,7 @@ import numpy as np
 Array = Any  # numpy or JAX array
 
 __all__ = [
+    "rpy_from_matrix",
     "translation",
     "rot_x",
     "rot_y",
@@ -101,6 +103,14 @@ def rot_z(xp, angle: Array) -> Array:
 def rpy(xp, roll: Array, pitch: Array, yaw: Array) -> Array:
     """Rz(yaw)·Ry(pitch)·Rx(roll), the URDF convention."""
     return _rotation(xp, _rz(xp, yaw) @ _ry(xp, pitch) @ _rx(xp, roll))
+
+
+def rpy_from_matrix(R: np.ndarray) -> tuple[float, float, float]:
+    """(roll, pitch, yaw) with R = Rz(yaw)·Ry(pitch)·Rx(roll) (URDF's convention; numpy)."""
+    pitch = math.atan2(-R[2, 0], math.hypot(R[0, 0], R[1, 0]))
+    roll = math.atan2(R[2, 1], R[2, 2])
+    yaw = math.atan2(R[1, 0], R[0, 0])
+    return roll, pitch, yaw
 
 
 def rodrigues(xp, axis: Array, angle: Array) -> Array:

@@ -32,6 +32,7 @@ from mbcal.api import calibrate
 from mbcal.errors import MbcalError
 from mbcal.geometry import transforms as geo
 from mbcal.geometry.camera import distort
+from mbcal.geometry.transforms import rpy_from_matrix
 from mbcal.language import ir
 from mbcal.language.model import Model
 from mbcal.measurements.sets import MeasurementSet
@@ -135,14 +136,6 @@ def pose_from_homography(K: np.ndarray, H: np.ndarray) -> tuple[np.ndarray, np.n
     if np.linalg.det(R) < 0:
         R = U @ np.diag([1, 1, -1]) @ Vt
     return R, t
-
-
-def rpy_from_matrix(R: np.ndarray) -> tuple[float, float, float]:
-    """(roll, pitch, yaw) with R = Rz(yaw)·Ry(pitch)·Rx(roll) (URDF's convention)."""
-    pitch = math.asin(max(-1.0, min(1.0, -R[2, 0])))
-    roll = math.atan2(R[2, 1], R[2, 2])
-    yaw = math.atan2(R[1, 0], R[0, 0])
-    return roll, pitch, yaw
 
 
 def _T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
