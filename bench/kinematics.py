@@ -14,7 +14,6 @@ page is bench/run.py's); ``--out -`` prints it instead.
 from __future__ import annotations
 
 import argparse
-import os
 import platform
 import sys
 import time
@@ -25,6 +24,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from common import best_of, cores_and_system, cpu_name, replace_section  # noqa: E402
+
 import mbcal  # noqa: E402
 from mbcal._jax import jax  # noqa: E402
 from mbcal.kinematics import Kinematics  # noqa: E402
@@ -33,15 +34,6 @@ URDF = ROOT / "tests" / "data" / "arm7.urdf"
 BEGIN = "<!-- bench/kinematics.py: begin -->"
 END = "<!-- bench/kinematics.py: end -->"
 GOAL_MS = 13.0  # the reference: Pinocchio looping in Python, 1.3 µs per configuration
-
-
-def best_of(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return min(times)
 
 
 def configurations(kin: Kinematics, count: int, seed: int = 0) -> np.ndarray:
@@ -97,18 +89,6 @@ def pinocchio(Q: np.ndarray, frame: str, repeats: int) -> dict | None:
     }
 
 
-def machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{cpu}, {os.cpu_count()} cores, {platform.system()} {platform.release()}"
-
-
 def section(results: dict, count: int) -> str:
     import jaxlib
 
@@ -123,7 +103,7 @@ def section(results: dict, count: int) -> str:
         "mbcal evaluates the whole batch in one compiled call (`Kinematics.forward`); Pinocchio is",
         "called once per configuration from a Python loop, as a user of its Python bindings would.",
         "",
-        f"- machine: {machine()}",
+        f"- machine: {cpu_name()}, {cores_and_system()}",
         f"- Python {platform.python_version()}, JAX {jax.__version__} (jaxlib {jaxlib.__version__}, "
         f"backend {jax.default_backend()}), NumPy {np.__version__}"
         + (f", Pinocchio {pin['version']}" if pin else ", Pinocchio not installed (`pip install pin`)"),
@@ -176,18 +156,6 @@ def section(results: dict, count: int) -> str:
     return "\n".join(lines)
 
 
-def write(text: str, path: Path) -> None:
-    from mbcal.outputs import atomic_write
-
-    old = path.read_text(encoding="utf-8") if path.exists() else ""
-    start, end = old.find(BEGIN), old.find(END)
-    if start >= 0 and end > start:
-        new = old[:start] + text + old[end + len(END) :]
-    else:
-        new = old.rstrip("\n") + ("\n\n" if old else "") + text + "\n"
-    atomic_write(path, new)
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--configs", type=int, default=10_000, help="configurations (default 10,000)")
@@ -211,7 +179,7 @@ def main(argv=None) -> int:
     if args.out == "-":
         print(text)
     else:
-        write(text, Path(args.out))
+        replace_section(Path(args.out), text, BEGIN, END)
         print(text)
         print(f"\nwrote {args.out}", file=sys.stderr)
     return 0

@@ -25,12 +25,15 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from common import replace_section  # noqa: E402
+
 from mbcal.workflows.demo import DEMO_TRUTH  # noqa: E402
 from mbcal.workflows.lever import (  # noqa: E402
     ROOM_PARAMS,
     LeverCase,
     LeverTask,
     calibrated_room,
+    case_cells,
     displaced,
     run_lever_task,
     seed_cases,
@@ -71,23 +74,9 @@ def yes(flag: bool) -> str:
 
 
 def case_rows(cases: list[LeverCase], task: LeverTask) -> list[list[str]]:
-    rows = []
-    for c in cases:
-        err = 100 * c.grasp_error
-        rows.append(
-            [
-                c.name,
-                f"{err[0]:+.1f} / {err[1]:+.1f} / {err[2]:+.1f}",
-                f"{100 * c.grasp_distance:.1f}",
-                yes(c.held),
-                f"{math.degrees(c.final_angle):.1f}",
-                f"{c.peak_pull_force:.1f}",
-                f"{mean_pull_force(c, task):.1f}",
-                f"{c.peak_contact:.1f}",
-                yes(c.success),
-            ]
-        )
-    return rows
+    return [
+        [*case_cells(c, yes), f"{mean_pull_force(c, task):.1f}", f"{c.peak_contact:.1f}", yes(c.success)] for c in cases
+    ]
 
 
 CASE_HEAD = [
@@ -357,16 +346,6 @@ def report(data: dict, task: LeverTask, images: list[str], image_dir: str) -> st
     return "\n".join(lines)
 
 
-def write(text: str, path: Path) -> None:
-    from mbcal.outputs import atomic_write
-
-    old = path.read_text(encoding="utf-8")
-    start, end = old.find(BEGIN), old.find(END)
-    if start < 0 or end < start:
-        raise SystemExit(f"{path} has no '{BEGIN}' … '{END}' section to replace")
-    atomic_write(path, old[:start] + text + old[end + len(END) :])
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--restarts", type=int, default=32, help="restarts of the room calibration")
@@ -411,7 +390,7 @@ def main(argv=None) -> int:
     if args.out == "-":
         print(text)
     else:
-        write(text, Path(args.out))
+        replace_section(Path(args.out), text, BEGIN, END, append=False)
         print(text)
         print(f"\nwrote {args.out} and {', '.join(images)} in {args.images} ", file=sys.stderr)
     print(f"({time.perf_counter() - started:.0f} s)", file=sys.stderr)

@@ -36,6 +36,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))  # also when this file is imported by path (tests)
+from common import best_of, cpu_name  # noqa: E402
+
 NIST = ROOT.parent / "shared" / "data" / "nist"
 GOALS = {"fd": 30.0, "jac": 3.0, "first": 1.5, "second": 0.5}
 
@@ -44,27 +47,16 @@ def say(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-def best_of(fn, repeats: int) -> float:
-    """The shortest of ``repeats`` timed calls (seconds): the least disturbed by the machine."""
-    out = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        out.append(time.perf_counter() - t0)
-    return min(out)
-
-
 # ---- the seed's problems ---------------------------------------------------------------------
 
 
 def seed_problem(name: str):
     """(Problem, starts) of the seed's experiment ``name`` with 1 px simulated clicks, 64 restarts."""
+    from experiments import CASES
+
     import mbcal
     from mbcal.problem import Problem
     from mbcal.solver import random_starts
-
-    sys.path.insert(0, str(ROOT / "bench"))
-    from experiments import CASES
 
     case = CASES[name]
     model = mbcal.load_model(ROOT / case.model)
@@ -360,14 +352,7 @@ def machine() -> list[str]:
     import jaxlib
     import scipy
 
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+    cpu = cpu_name()
     mem = ""
     try:
         kb = int(Path("/proc/meminfo").read_text().split()[1])

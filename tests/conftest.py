@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -53,3 +55,8 @@ def write_model(tmp_path, monkeypatch):
         return name
 
     return write
+
+
+def run_python(*args: str) -> subprocess.CompletedProcess:
+    """Run ``python ARGS`` from the repository root (the bench scripts' smoke tests)."""
+    return subprocess.run([sys.executable, *args], cwd=ROOT, capture_output=True, text=True, timeout=900)

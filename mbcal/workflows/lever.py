@@ -19,7 +19,7 @@ friction and inertia, the stiffness of the closed hand and of hard contact — a
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -56,6 +56,7 @@ __all__ = [
     "plan",
     "displaced",
     "lever_table",
+    "case_cells",
     "with_task",
 ]
 
@@ -336,22 +337,23 @@ def displaced(truth: Mapping[str, float], depth: float) -> dict[str, float]:
     return values
 
 
+def case_cells(case: LeverCase, flag: Callable[[bool], str] = lambda b: "yes" if b else "no") -> list[str]:
+    """A case's outcome as table cells: name, hand − knob (cm, x / y / z), its length, caught,
+    the lever's final angle (deg) and the peak pulling force (N); ``flag`` writes the yes/no."""
+    err = 100 * case.grasp_error
+    return [
+        case.name,
+        f"{err[0]:+.1f} / {err[1]:+.1f} / {err[2]:+.1f}",
+        f"{100 * case.grasp_distance:.1f}",
+        flag(case.held),
+        f"{math.degrees(case.final_angle):.1f}",
+        f"{case.peak_pull_force:.1f}",
+    ]
+
+
 def lever_table(cases: Sequence[LeverCase]) -> str:
     """The outcome of each case as a text table."""
-    rows = []
-    for c in cases:
-        err = 100 * c.grasp_error
-        rows.append(
-            [
-                c.name,
-                f"{err[0]:+.1f} / {err[1]:+.1f} / {err[2]:+.1f}",
-                f"{100 * c.grasp_distance:.1f}",
-                "yes" if c.held else "no",
-                f"{math.degrees(c.final_angle):.1f}",
-                f"{c.peak_pull_force:.1f}",
-                "yes" if c.success else "no",
-            ]
-        )
+    rows = [[*case_cells(c), "yes" if c.success else "no"] for c in cases]
     return table(
         ["case", "hand − knob x/y/z (cm)", "|error| (cm)", "caught", "lever (deg)", "peak ‖F‖ (N)", "success"],
         rows,
