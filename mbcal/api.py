@@ -150,10 +150,11 @@ def _units(problem: Problem) -> dict[str, str]:
     return {u.name: u.param.unit for u in problem.params.unknowns}
 
 
-def _residual_rows(problem: Problem, x: np.ndarray) -> list[ResidualRow]:
+def _residual_rows(problem: Problem, x: np.ndarray, residual: np.ndarray) -> list[ResidualRow]:
+    """Each measurement at x; ``residual`` is the whitened residual at x (measurements, then priors)."""
     h = problem.predict(x)
     y = problem.y
-    r = problem.residual(x)[: problem.size]
+    r = residual[: problem.size]
     return [
         ResidualRow(
             m.id, m.kind, m.config, dict(m.refs), y[rows].copy(), h[rows].copy(), float(np.sqrt(np.sum(r[rows] ** 2)))
@@ -313,8 +314,10 @@ def calibrate(
         )
     x = solved.x_best
     say("analysing observability")
-    Jm, Jp = _jacobian_split(problem, x)
-    rows = _residual_rows(problem, x)
+    J = problem.jacobian(x)  # once: the observability analysis and the fit verdict share it
+    Jm, Jp = J[: problem.size], J[problem.size :]
+    r = problem.residual(x)
+    rows = _residual_rows(problem, x, r)
     cost = solved.cost_best
     m_rows = problem.n_residuals
     provisional_dof = max(m_rows - params.size, 1)
@@ -336,8 +339,8 @@ def calibrate(
     say("judging the fit")
     verdict = assess_fit(
         problem,
-        problem.residual(x),
-        np.vstack([Jm, Jp]),
+        r,
+        J,
         obs,
         loss=str(config.loss),
         config=o.fit,
