@@ -5,11 +5,26 @@ from __future__ import annotations
 
 import os
 import platform
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 from mbcal.outputs import atomic_write
+
+# The true intrinsics (OpenCV's 5-term model) of the simulated 9 × 6 board camera of
+# models/camera_calibration.mdl, shared by the benchmarks that simulate its views.
+CAMERA_TRUTH = {
+    "cam.fx": 812.0,
+    "cam.fy": 806.5,
+    "cam.cx": 327.0,
+    "cam.cy": 236.0,
+    "cam.k1": -0.21,
+    "cam.k2": 0.08,
+    "cam.p1": 0.001,
+    "cam.p2": -0.0007,
+    "cam.k3": 0.0,
+}
 
 
 def best_of(fn: Callable[[], object], repeats: int) -> float:
@@ -34,7 +49,10 @@ def cpu_name() -> str:
 
 
 def cores_and_system() -> str:
-    return f"{os.cpu_count()} cores, {platform.system()} {platform.release()}"
+    """Cores and system, with the load average of the last minute: a number measured while other
+    work kept the machine busy says so on the page."""
+    load = f"; load average {os.getloadavg()[0]:.1f} when it ran" if hasattr(os, "getloadavg") else ""
+    return f"{os.cpu_count()} cores, {platform.system()} {platform.release()}{load}"
 
 
 def replace_section(path: Path, text: str, begin: str, end: str, *, append: bool = True) -> None:
@@ -49,3 +67,12 @@ def replace_section(path: Path, text: str, begin: str, end: str, *, append: bool
     else:
         raise SystemExit(f"{path} has no '{begin}' … '{end}' section to replace")
     atomic_write(path, new)
+
+
+def publish(text: str, out: str, begin: str, end: str) -> None:
+    """Print a bench's section; unless ``out`` is ``-``, also write it over its section of the
+    page ``out`` (the rest of the page untouched)."""
+    print(text)
+    if out != "-":
+        replace_section(Path(out), text, begin, end)
+        print(f"\nwrote {out}", file=sys.stderr)

@@ -24,7 +24,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from common import best_of, cores_and_system, cpu_name, replace_section  # noqa: E402
+from common import best_of, cores_and_system, cpu_name, publish  # noqa: E402
 
 import mbcal  # noqa: E402
 from mbcal._jax import jax  # noqa: E402
@@ -176,12 +176,7 @@ def main(argv=None) -> int:
         results["agree_p"] = float(np.abs(np.asarray(out.position) - pin["position"]).max())
         results["agree_J"] = float(np.abs(np.asarray(out.jacobian) - pin["jacobian"]).max())
     text = section(results, args.configs)
-    if args.out == "-":
-        print(text)
-    else:
-        replace_section(Path(args.out), text, BEGIN, END)
-        print(text)
-        print(f"\nwrote {args.out}", file=sys.stderr)
+    publish(text, args.out, BEGIN, END)
     return 0
 
 

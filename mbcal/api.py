@@ -33,6 +33,15 @@ from mbcal.observability import (
 from mbcal.problem import Problem
 from mbcal.results import CalibrationResult, PlanAnalysis, ResidualRow, RunInfo
 from mbcal.solver import SolverConfig, least_squares, random_starts
+from mbcal.structured import (
+    DENSE_ANALYSIS_ENTRIES,
+    Structure,
+    dense_jacobian,
+    least_squares_structured,
+    pays,
+    square_root_information,
+    structure_of,
+)
 
 __all__ = [
     "calibrate",
@@ -260,6 +269,35 @@ def _measured_keys(ms: MeasurementSet) -> set:
     return keys
 
 
+def _structure(problem: Problem, config: SolverConfig) -> Structure | None:
+    """Issue 15: the block structure to solve by the Schur complement, or None for the dense solver.
+
+    The rule (``SolverConfig.structure``): ``dense`` never; ``structured`` always (an error when
+    the problem has no block structure or has hard bounds); ``auto`` when the problem has no hard
+    bounds and :func:`mbcal.structured.pays`: at least 8 configurations with unknowns of their
+    own (board poses), which outnumber the shared ones.  A structured problem whose m × n
+    Jacobian exceeds :data:`mbcal.structured.DENSE_ANALYSIS_ENTRIES` is refused here (the report
+    analyses it densely); the low-level :mod:`mbcal.structured` API solves and analyses it.
+    """
+    if config.structure == "dense":
+        return None
+    structure = structure_of(problem)
+    bounded = problem.params.bounds is not None
+    if config.structure == "structured" and (structure is None or bounded):
+        why = "has hard bounds" if bounded else "has no configurations with unknowns of their own"
+        raise SolverError(f"the structured solver cannot solve this problem: it {why}", hint="use structure='dense'")
+    if structure is None or bounded or not (config.structure == "structured" or pays(structure)):
+        return None
+    if structure.m * structure.n > DENSE_ANALYSIS_ENTRIES:
+        raise SolverError(
+            f"{structure.n} unknowns over {structure.m} residual rows is more than calibrate() analyses "
+            f"({DENSE_ANALYSIS_ENTRIES:,} Jacobian entries)",
+            hint="solve it with mbcal.structured.least_squares_structured and analyse it with "
+            "mbcal.structured.analyze_structured (docs/scale.md)",
+        )
+    return structure
+
+
 def calibrate(
     model: Model,
     measurements: MeasurementSet,
@@ -291,21 +329,35 @@ def calibrate(
     problem = Problem(model, measurements, estimate, known=known, priors=priors)
     problem.check_ready()
     params = problem.params
-    check_size(restarts, params.size, problem.n_residuals)
+    config = config or SolverConfig()
+    structure = _structure(problem, config)  # issue 15: the Schur complement when it pays
+    if structure is None:
+        check_size(restarts, params.size, problem.n_residuals)
     x_init = params.from_dict(dict(initial)) if initial else params.x0
     starts = random_starts(x_init, params.lower, params.upper, restarts, seed, limits=params.bounds)
-    config = config or SolverConfig()
     say(f"solving: {params.size} unknowns, {problem.size} residuals, {len(starts)} restarts")
-    solved = least_squares(
-        problem.residual_function,
-        starts,
-        args=(problem.y, params.known),
-        config=config,
-        size=problem.n_residuals,
-        cache_key=problem.fingerprint(),
-        bounds=params.bounds,  # hard limits (None: none); issue 14
-        local=problem.local,  # rotation steps for roll-pitch-yaw orientations (None: none)
-    )
+    args = (problem.y, params.known)
+    if structure is not None:
+        solved = least_squares_structured(
+            problem.residual_function,
+            starts,
+            structure,
+            args=args,
+            config=config,
+            local=problem.local,
+            cache_key=problem.fingerprint(),  # issue 16: a second process does not trace it again
+        )
+    else:
+        solved = least_squares(
+            problem.residual_function,
+            starts,
+            args=args,
+            config=config,
+            size=problem.n_residuals,
+            cache_key=problem.fingerprint(),
+            bounds=params.bounds,  # hard limits (None: none); issue 14
+            local=problem.local,  # rotation steps for roll-pitch-yaw orientations (None: none)
+        )
     if solved.best < 0:
         raise SolverError(
             "every restart failed: the residuals are not finite at any starting point "
@@ -314,16 +366,22 @@ def calibrate(
         )
     x = solved.x_best
     say("analysing observability")
-    J = problem.jacobian(x)  # once: the observability analysis and the fit verdict share it
+    # once: the observability analysis and the fit verdict share it (structured: from nb + ks tangents)
+    if structure is None:
+        r, J = problem.residual_and_jacobian(x)
+    else:
+        r, J, Jc = dense_jacobian(problem.residual_function, x, structure, args)
     Jm, Jp = J[: problem.size], J[problem.size :]
-    r = problem.residual(x)
     rows = _residual_rows(problem, x, r)
     cost = solved.cost_best
     m_rows = problem.n_residuals
     provisional_dof = max(m_rows - params.size, 1)
     chi2 = cost / provisional_dof if scale_covariance else 1.0
     obs = analyze(
-        Jm,
+        # structured: an n × n R with RᵀR = JmᵀJm (same spectrum), not the m × n Jacobian (issue 15)
+        Jm
+        if structure is None
+        else square_root_information(Jc[: problem.size], structure.row_block[: problem.size], structure),
         Jp,
         params.names,
         _units(problem),
@@ -332,6 +390,7 @@ def calibrate(
         chi2_scale=chi2,
         active=solved.active_best,  # unknowns held at an active hard bound
     )
+    obs.n_values = problem.size  # the measured values (R above has n rows)
     if suggest and not obs.observable:
         say("ranking candidate measurements")
         candidates = _candidate_rows(problem, x, _measured_keys(measurements))

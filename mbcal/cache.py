@@ -27,6 +27,7 @@ import functools
 import hashlib
 import os
 import threading
+from collections import OrderedDict
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -36,10 +37,61 @@ import numpy as np
 from mbcal.outputs import atomic_write
 from mbcal.resources import find_bundled, package_root
 
-__all__ = ["cache_dir", "enable_compilation_cache", "exported", "code_fingerprint", "Hasher"]
+__all__ = [
+    "cache_dir",
+    "enable_compilation_cache",
+    "exported",
+    "code_fingerprint",
+    "Hasher",
+    "ProgramCache",
+    "PROGRAMS",
+]
 
-_LOCK = threading.Lock()
-_LOADED: dict[str, Callable] = {}
+
+class ProgramCache:
+    """A small least-recently-used cache of compiled programs, shared within one process.
+
+    Objects of the same structure (two :class:`mbcal.problem.Problem` of one model and one
+    measurement plan, differing only in the measured values) can run the same jitted functions:
+    the second one then neither traces nor compiles.  The cache is *bounded*: every compiled XLA
+    executable holds memory maps and code, and a process that keeps hundreds of them alive (a
+    long test session) can exhaust the kernel's map limit and crash inside XLA's compiler.  When
+    more than ``size`` entries exist the least recently used is dropped, and its programs are
+    freed once nothing else refers to them.
+    """
+
+    def __init__(self, size: int):
+        self.size = size
+        self._entries: OrderedDict[Any, Any] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, key: Any, build: Callable[[], Any]) -> Any:
+        """The entry for ``key``, built by ``build()`` on a miss (outside the lock: a build traces)."""
+        with self._lock:
+            if key in self._entries:
+                self._entries.move_to_end(key)
+                return self._entries[key]
+        value = build()
+        with self._lock:
+            value = self._entries.setdefault(key, value)
+            self._entries.move_to_end(key)
+            while len(self._entries) > self.size:
+                self._entries.popitem(last=False)
+        return value
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def clear(self) -> None:
+        with self._lock:
+            self._entries.clear()
+
+
+# Programs of problems (mbcal.problem) and exported solver programs loaded from the cache folder.
+# A few structures are plenty for a process that solves one problem again and again (a server,
+# a Monte Carlo loop, a notebook); a test session that builds hundreds keeps only the latest.
+PROGRAMS = ProgramCache(8)
+_LOADED = ProgramCache(8)
 
 
 def cache_dir() -> Path | None:
@@ -128,22 +180,26 @@ def _export_module() -> Any:
     return export
 
 
-def exported(key: str, jitted: Callable, *example: Any) -> Callable:
+def exported(key: str, jitted: Callable, *example: Any, keep: bool = True) -> Callable:
     """A callable equivalent to ``jitted`` for arguments shaped like ``example``.
 
     The first process to ask for ``key`` traces ``jitted`` and saves the lowered program; later
     processes load it without tracing.  Without a cache (or without ``flatbuffers``, which
-    ``jax.export`` needs to serialise), ``jitted`` itself is returned.
+    ``jax.export`` needs to serialise), ``jitted`` itself is returned.  ``keep``: remember the
+    loaded program in this process (a small LRU); False when the caller keeps it itself.
     """
     folder = cache_dir()
     if folder is None:
         return jitted
-    with _LOCK:
-        if key in _LOADED:
-            return _LOADED[key]
     export = _export_module()
     if export is None:
         return jitted
+    if not keep:
+        return _load_or_export(export, folder, key, jitted, example)
+    return _LOADED.get(key, lambda: _load_or_export(export, folder, key, jitted, example))
+
+
+def _load_or_export(export: Any, folder: Path, key: str, jitted: Callable, example: tuple) -> Callable:
     enable_compilation_cache()
     path = folder / "exports" / f"{key}.jaxexport"
     program = None
@@ -159,7 +215,8 @@ def exported(key: str, jitted: Callable, *example: Any) -> Callable:
             atomic_write(path, bytes(program.serialize()))
         except OSError:
             pass  # a read-only cache: still correct, only slower next time
-    call = program.call
-    with _LOCK:
-        _LOADED[key] = call
-    return call
+    from mbcal._jax import jax
+
+    # Jitted, so that its executable lives (and dies) with this cache's entry: called eagerly,
+    # an exported program is compiled into JAX's unbounded cache of primitives instead.
+    return jax.jit(program.call)

@@ -20,12 +20,19 @@ import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-import numpy as np
+# The command line's own process (NumPy not loaded yet): one BLAS thread unless the user says
+# otherwise.  The analysis's SVDs are small, and OpenBLAS threads that spin beside XLA's on a busy
+# machine made them 100× slower (issue 16, docs/performance.md); a library user's process is
+# left alone.
+if "numpy" not in sys.modules:
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-from mbcal import __version__
-from mbcal.errors import MbcalError
-from mbcal.outputs import atomic_write, check_output
-from mbcal.units import UNITS
+import numpy as np  # noqa: E402
+
+from mbcal import __version__  # noqa: E402
+from mbcal.errors import MbcalError  # noqa: E402
+from mbcal.outputs import atomic_write, check_output  # noqa: E402
+from mbcal.units import UNITS  # noqa: E402
 
 __all__ = ["main", "build_parser"]
 
@@ -186,7 +193,22 @@ def _solver_config(args):
     from mbcal.solver import SolverConfig  # lazy: keeps JAX out of 'mbcal check'
 
     # The robust loss's scale defaults to the library's (Loss.default_scale): CLI and API agree.
-    return SolverConfig(max_iterations=args.max_iterations, loss=args.loss or "linear", loss_scale=args.loss_scale)
+    return SolverConfig(
+        max_iterations=args.max_iterations,
+        loss=args.loss or "linear",
+        loss_scale=args.loss_scale,
+        structure=args.structure,  # issue 15: the Schur complement for many configurations
+    )
+
+
+def _structure_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--structure",
+        choices=["auto", "structured", "dense"],
+        default="auto",
+        help="solver for many configurations with unknowns of their own: the Schur complement "
+        "('structured'), the dense one, or 'auto' (structured from 8 such configurations; docs/scale.md)",
+    )
 
 
 def _estimate(model, patterns):
@@ -449,6 +471,7 @@ def cmd_calibrate_camera(args: argparse.Namespace) -> int:
     from mbcal.api import check_size  # lazy: keeps JAX out of 'mbcal check'
     from mbcal.measurements.io import read_measurements  # lazy: keeps JAX out of 'mbcal check'
     from mbcal.measurements.sets import merge_measurements  # lazy: keeps JAX out of 'mbcal check'
+    from mbcal.solver import SolverConfig  # lazy: keeps JAX out of 'mbcal check'
     from mbcal.workflows.cameras import calibrate_cameras, reprojection_images  # lazy: keeps JAX out of 'mbcal check'
 
     inputs = [args.model, *args.measurements]
@@ -465,6 +488,7 @@ def cmd_calibrate_camera(args: argparse.Namespace) -> int:
         initialize=not args.no_init,
         restarts=args.restarts,
         seed=args.seed,
+        config=SolverConfig(structure=args.structure),  # issue 15
         fit=_fit_config(args),
         accept_poor_fit=args.accept_poor_fit,
     )
@@ -501,6 +525,42 @@ def cmd_demo(args: argparse.Namespace) -> int:
         quiet=args.quiet,
         progress=Progress(not args.quiet),
     )
+
+
+# ---- studio ---------------------------------------------------------------------------------------------
+
+
+def cmd_studio(args: argparse.Namespace) -> int:
+    import importlib.util  # only to see whether the optional extra is installed
+
+    if any(importlib.util.find_spec(m) is None for m in ("fastapi", "uvicorn")):
+        from mbcal.studio import MISSING_EXTRA  # light: a constant
+
+        print(f"mbcal studio: {MISSING_EXTRA}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    from mbcal.studio.engine import Engine  # lazy: keeps JAX out of 'mbcal check'
+    from mbcal.studio.server import serve_forever  # lazy: the optional web server
+
+    photos = []
+    for item in args.image or []:
+        if "=" not in item:
+            raise MbcalError(f"--image expects CAMERA=PHOTO or CAMERA@CONFIG=PHOTO, got '{item}'")
+        cam, path = item.split("=", 1)
+        cam, _, config = cam.partition("@")
+        photos.append((cam, config or "default", path))
+    if args.host != "127.0.0.1":
+        print(
+            f"mbcal studio: warning: listening on {args.host}, not only this machine; anyone who can reach it "
+            "and has the URL's token can edit the session and write under --out",
+            file=sys.stderr,
+        )
+    for path in [args.model, *args.measurements]:
+        if not Path(path).is_file():
+            raise MbcalError(f"file not found: {path}")
+    engine = Engine(args.model, args.measurements, photos, args.out)
+    if engine.error:
+        print(f"mbcal studio: the model has an error (shown in the page too):\n{engine.error['text']}", file=sys.stderr)
+    return serve_forever(engine, args.host, args.port, open_browser=not args.no_browser)
 
 
 # ---- kinematics -----------------------------------------------------------------------------------------
@@ -636,6 +696,7 @@ def _register_commands(sub) -> None:
         "--loss-scale", type=float, metavar="C", help="robust loss scale in σ (default 1.345 Huber, 2.385 Cauchy)"
     )
     p.add_argument("--max-iterations", type=int, default=100, metavar="N", help="iterations per restart")
+    _structure_option(p)
     p.add_argument("--scale-covariance", action="store_true", help="scale the covariance by the reduced χ²")
     p.add_argument(
         "--outlier-threshold",
@@ -804,6 +865,7 @@ def _register_commands(sub) -> None:
     p.add_argument("--restarts", type=int, default=4, metavar="N", help="starts: Zhang's solution and N-1 random ones")
     p.add_argument("--seed", type=int, default=0, metavar="S")
     p.add_argument("--no-init", action="store_true", help="start from the model's nominal values, not Zhang's method")
+    _structure_option(p)
     p.add_argument("--image", action="append", metavar="CONFIG=PATH", help="the image of a view, for --overlay")
     p.add_argument("--overlay", metavar="DIR", help="write each image with its detected and reprojected corners")
     _verdict_options(p)
@@ -829,6 +891,38 @@ def _register_commands(sub) -> None:
     p.add_argument("--restarts", type=int, default=32, metavar="N")
     p.add_argument("--seed", type=int, default=0, metavar="S")
     _quiet_option(p)
+
+    p = _add(
+        sub,
+        "studio",
+        "the human interface: click model points in photos, solve, see the model snap on (web page)",
+        """
+        A local web page (the seed's human interface and superimposer, sections 2.6 and 3.5): each
+        camera's photo with the model drawn over it; pick a model point and click where it is in the
+        photo (a loupe, drag, delete, undo); coarse-align with sliders; choose the unknowns; Observe
+        (rank, what is missing, which point to click next); Solve (random restarts); Save the
+        measurement file, the calibrated model, the report and the overlays into --out.  Every edit
+        is saved at once to --out/studio-session.json; a restart on the same --out restores it.
+        Listens on 127.0.0.1 with a random token in the URL.  Needs pip install 'mbcal[studio]'.
+        See docs/studio.md.
+        """,
+        """
+        mbcal studio models/teleexistence.mdl --image eyes.left=left.png --image eyes.right=right.png --out session/
+        """,
+        cmd_studio,
+    )
+    p.add_argument("model", metavar="MODEL", help="model file (.mdl or .urdf)")
+    p.add_argument("measurements", metavar="MEASUREMENTS", nargs="*", help="measurement files to start from")
+    p.add_argument(
+        "--image",
+        action="append",
+        metavar="CAMERA=PHOTO",
+        help="a camera's photo (CAMERA@CONFIG=PHOTO for a configuration); repeatable",
+    )
+    p.add_argument("--out", default="mbcal-studio", metavar="DIR", help="the folder to write in (default mbcal-studio)")
+    p.add_argument("--no-browser", action="store_true", help="print the URL instead of opening a browser")
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1; others warn)")
+    p.add_argument("--port", type=int, default=0, metavar="N", help="port (default: a free one)")
 
     p = _add(
         sub,
@@ -881,6 +975,148 @@ def _register_commands(sub) -> None:
     )
     _json_option(p, "the result as JSON")
     _quiet_option(p, "print nothing (use the exit status, --json)")
+
+    p = _add(
+        sub,
+        "fit",
+        "calibrate from range data: point clouds and depth images, point-to-surface, no operator",
+        """
+        Estimate the unknowns from scans without an operator (seed §5): point clouds (PLY, OBJ, PCD,
+        XYZ/CSV, .npy; in the world frame or --frame) and depth images (16-bit PNG in the depth
+        camera's unit, float TIFF/.npy in metres) through the model's depth camera.  Each scan is
+        voxel down-sampled, globally aligned when far off, cropped to the model's neighbourhood and
+        fitted by point-to-surface distances with a robust loss (Cauchy).  Points that belong to no
+        modelled surface are counted and written as OUT/MODEL.outliers.ply; objects whose points
+        no longer fit their shape are named.  Writes OUT/MODEL.calibrated.mdl and OUT/MODEL.fit.json.
+
+        Exit status: 0 a trustworthy fit; 1 not converged, unobservable, inliers inconsistent with
+        σ, a structural misfit or mostly outliers; 2 bad input (a located error).
+        """,
+        """
+        mbcal fit models/room_depth.mdl depth_0001.png --estimate 'room.*' --voxel 0.01 --out fitted/
+        """,
+        cmd_fit,
+    )
+    p.add_argument("model", metavar="MODEL", help="model file (.mdl or .urdf)")
+    p.add_argument("scans", metavar="SCAN", nargs="+", help="point clouds or depth images")
+    _range_arguments(p)
+    p.add_argument("--out", metavar="DIR", help="folder for the calibrated model, the outliers PLY and the report")
+    _quiet_option(p, "print nothing (use the exit status)")
+
+    p = _add(
+        sub,
+        "watch",
+        "the environment model manager: keep a model calibrated from scans appearing in a folder",
+        """
+        Watch a folder for scan files (oldest name first) and update the estimate with each, warm
+        started and with the previous posterior as a prior (information form, widened by
+        --process-noise), so it tightens over batches and follows slow drift.  After each update:
+        a line in OUT/history.jsonl (estimate, σ, χ², time), OUT/state.json and the calibrated
+        model OUT/MODEL.calibrated.mdl (atomic; never the input).  Flags a drift (an unknown moved
+        more than --drift-k σ) and names structural misfits.  Safe to kill at any moment; a
+        restart resumes from the history and skips the files already taken.
+        """,
+        """
+        mbcal watch models/room_depth.mdl --scans incoming/ --out managed/ --estimate 'room.*' \\
+            --estimate lever.angle --process-noise lever.angle=0.1
+        """,
+        cmd_watch,
+    )
+    p.add_argument("model", metavar="MODEL", help="model file (.mdl or .urdf)")
+    p.add_argument("--scans", required=True, metavar="DIR", help="folder where scan files appear")
+    p.add_argument("--out", required=True, metavar="DIR", help="folder of the history and the calibrated model")
+    _range_arguments(p)
+    p.add_argument("--drift-k", type=float, default=3.0, metavar="K", help="drift flag at K σ (default 3)")
+    p.add_argument(
+        "--process-noise", action="append", metavar="GLOB=SIGMA", help="expected change per update (SI); repeatable"
+    )
+    p.add_argument("--poll", type=float, default=1.0, metavar="S", help="seconds between looks (default 1)")
+    p.add_argument("--once", action="store_true", help="process the files there now and exit")
+    _quiet_option(p, "print nothing")
+
+
+# ---- fit / watch (range data) --------------------------------------------------------------------------
+
+
+def _fit_options(args: argparse.Namespace):
+    from mbcal.range.fit import FitOptions  # lazy: keeps JAX out of 'mbcal check'
+
+    for name in ("voxel", "crop", "sigma"):
+        v = getattr(args, name, None)
+        if v is not None and not (v >= 0 and v < float("inf")):
+            raise MbcalError(f"--{name} must be a non-negative number of metres, got {v}")
+    return FitOptions(
+        voxel=args.voxel, crop=args.crop, loss=args.loss, restarts=args.restarts, seed=args.seed, coarse=args.coarse
+    )
+
+
+def _range_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--estimate", required=True, action="append", metavar="GLOB", help="unknowns (repeatable)")
+    p.add_argument("--voxel", type=float, default=0.01, metavar="M", help="voxel size in metres (default 0.01; 0: off)")
+    p.add_argument("--crop", type=float, default=0.10, metavar="M", help="keep points within M of the model (0.10)")
+    p.add_argument("--loss", choices=["cauchy", "huber", "linear"], default="cauchy", help="robust loss (cauchy)")
+    p.add_argument("--restarts", type=int, default=1, metavar="N", help="starting points (default 1)")
+    p.add_argument("--seed", type=int, default=0, metavar="S", help="seed of the starting points")
+    p.add_argument("--coarse", choices=["auto", "always", "never"], default="auto", help="global alignment (auto)")
+    p.add_argument("--sensor", metavar="NAME", help="the depth camera of depth images (default: the only one)")
+    p.add_argument("--frame", metavar="NAME", help="frame of point clouds (default: world)")
+    p.add_argument("--sigma", type=float, metavar="M", help="σ of a point in m (default 2 mm; depth: 1 mm + 0.1 %% z)")
+
+
+def cmd_fit(args: argparse.Namespace) -> int:
+    from mbcal.range.manager import fit_files  # lazy: keeps JAX out of 'mbcal check'
+
+    fit, written = fit_files(
+        args.model,
+        args.scans,
+        args.estimate,
+        _fit_options(args),
+        out=args.out,
+        sensor=args.sensor,
+        frame=args.frame,
+        sigma=args.sigma,
+    )
+    if not args.quiet:
+        print(fit.text())
+        for path in written:
+            print(f"wrote {path}")
+    return 0 if fit.ok else 1
+
+
+def cmd_watch(args: argparse.Namespace) -> int:
+    from mbcal.range.manager import ModelManager  # lazy: keeps JAX out of 'mbcal check'
+
+    noise = {}
+    for item in args.process_noise or []:
+        name, _, value = item.partition("=")
+        try:
+            noise[name] = float(value)
+        except ValueError:
+            raise MbcalError(f"--process-noise expects GLOB=SIGMA (SI units), got '{item}'") from None
+    manager = ModelManager(
+        args.model,
+        args.out,
+        args.estimate,
+        _fit_options(args),
+        drift_k=args.drift_k,
+        process_noise=noise,
+        sensor=args.sensor,
+        frame=args.frame,
+        sigma=args.sigma,
+    )
+
+    def report(u) -> None:
+        if args.quiet:
+            return
+        flags = "".join(f"\n  drift: {d}" for d in u.drift) + "".join(f"\n  structural misfit: {m}" for m in u.misfits)
+        state = "accepted" if u.accepted else "REJECTED"
+        values = ", ".join(f"{k} {v:.6g}±{u.std[k]:.2g}" for k, v in u.values.items())
+        print(f"update {u.seq} ({state}, {u.points} points, χ²/dof {u.reduced_chi2:.3g}): {values}{flags}", flush=True)
+
+    if not args.quiet and manager.history:
+        print(f"resumed: {len(manager.history)} updates in {manager.journal}")
+    manager.watch(args.scans, poll=args.poll, once=args.once, report=report)
+    return 0
 
 
 # ---- the parser ---------------------------------------------------------------------------------

@@ -282,7 +282,8 @@ def analyze(
 
     # The covariance uses the priors as well.
     Jt = Js if J_priors is None or len(J_priors) == 0 else np.vstack([Js, np.asarray(J_priors) * S])
-    svt_full, Vt_full, keep = _spectrum(Jt, n, config.rtol)
+    # Without priors Jt is Js: its spectrum is the one just computed (issue 15: one SVD, not two).
+    svt_full, Vt_full, keep = (full_sv, V, observable_mask) if Jt is Js else _spectrum(Jt, n, config.rtol)
     rank_t = int(keep.sum())
     Vk = Vt_full[:, keep]
     cov_s = (Vk / svt_full[keep] ** 2) @ Vk.T * chi2_scale

@@ -39,7 +39,7 @@ from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
-from mbcal._jax import jax, jnp
+from mbcal._jax import jax, jnp, to_device
 from mbcal.cache import Hasher, exported
 from mbcal.errors import SolverError
 
@@ -145,6 +145,11 @@ class SolverConfig:
         in a rotation vector about the current orientation, so they converge at ±90° pitch
         (gimbal lock) too.  False: plain additive steps in the angles.  Without an offer
         (problems without such orientations) it changes nothing.
+    structure : str
+        How :func:`mbcal.calibrate` solves a problem whose configurations have unknowns of their
+        own (board poses): ``auto`` (the Schur complement of :mod:`mbcal.structured` when it pays,
+        see :func:`mbcal.structured.pays`), ``structured`` (always; an error when the problem has
+        no such structure) or ``dense`` (the dense solver of this module).  Issue 15.
     """
 
     max_iterations: int = 100
@@ -156,8 +161,11 @@ class SolverConfig:
     loss: Loss = Loss.LINEAR
     loss_scale: float | None = None
     manifold: bool = True
+    structure: str = "auto"
 
     def __post_init__(self) -> None:
+        if self.structure not in ("auto", "structured", "dense"):
+            raise SolverError(f"unknown structure '{self.structure}' (auto, structured or dense)")
         try:
             loss = Loss(self.loss)
         except ValueError:
@@ -297,7 +305,10 @@ SMALL_SYSTEM = 16
 
 
 def _solve_spd(M: Array, b: Array) -> Array:
-    """Solve M x = b for a symmetric positive definite M (NaN when it is not)."""
+    """Solve M x = b for a symmetric positive definite M (NaN when it is not).
+
+    Used by :mod:`mbcal.structured` (issue 15): vmapped over thousands of small blocks (3 × 3,
+    6 × 6) the unrolled factorisation is a few fused vector operations."""
     n = M.shape[0]
     if n > SMALL_SYSTEM:
         chol = jnp.linalg.cholesky(M)
@@ -317,6 +328,76 @@ def _solve_spd(M: Array, b: Array) -> Array:
     for i in reversed(range(n)):
         x[i] = (y[i] - sum((L[k][i] * x[k] for k in range(i + 1, n)), start=0.0)) / L[i][i]
     return jnp.stack(x)
+
+
+def _solve_step(M: Array, b: Array) -> Array:
+    """Solve the damped normal equations M δ = b of the dense solver by LAPACK's Cholesky
+    factorisation (NaN when M is not positive definite: the step is then rejected).
+
+    Not :func:`_solve_spd`'s unrolled factorisation: vmapped over 64 restarts of 6–7 unknowns the
+    two run equally fast, but the unrolled one doubled the XLA compile of the solver's own
+    program (1.7 s → 0.9 s of CPU time; issue 16).
+    """
+    chol = jnp.linalg.cholesky(M)
+    half = jax.scipy.linalg.solve_triangular(chol, b, lower=True)
+    return jax.scipy.linalg.solve_triangular(chol.T, half, lower=False)
+
+
+class Trial(NamedTuple):
+    """One trial point of the Marquardt loop, judged: accepted or not, and the state it leaves."""
+
+    first: Array
+    ok: Array
+    accept: Array
+    actual: Array
+    x: Array
+    r: Array
+    rw: Array
+    Jw: Array
+    cost: Array
+    lam: Array
+    nu: Array
+
+
+def marquardt_trial(evaluate: Callable, weighted: Callable, loss: Loss, scale: float, state: Any) -> Trial:
+    """Evaluate the trial point ``state.x_try`` and apply Marquardt's rule (Nielsen's update of λ
+    from the gain ratio ρ = actual / predicted decrease).  The one rule of the dense solver and of
+    :mod:`mbcal.structured`: their iterates agree because this is shared, not copied.  ``state``
+    has the fields x, r, rw, Jw, cost, x_try, predicted, lam, nu and it."""
+    first = state.it == 0
+    J_new, r_new = evaluate(state.x_try)
+    cost_new, rw_new, Jw_new = weighted(r_new, J_new)
+    ok = jnp.isfinite(cost_new) & jnp.all(jnp.isfinite(Jw_new))
+    actual = jnp.where(first, jnp.inf, -robust_change(loss, scale, state.r, jnp.where(ok, r_new, state.r)))
+    accept = ok & (first | (actual > 0))
+    predicted = state.predicted
+    rho = jnp.where(predicted > 0, actual / jnp.where(predicted > 0, predicted, 1.0), -1.0)
+    lam_acc = jnp.where(first, state.lam, state.lam * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3))
+    return Trial(
+        first=first,
+        ok=ok,
+        accept=accept,
+        actual=actual,
+        x=jnp.where(accept, state.x_try, state.x),
+        r=jnp.where(accept, r_new, state.r),
+        rw=jnp.where(accept, rw_new, state.rw),
+        Jw=jnp.where(accept, Jw_new, state.Jw),
+        cost=jnp.where(accept, jnp.where(first, cost_new, state.cost - actual), state.cost),
+        lam=jnp.where(accept, lam_acc, state.lam * state.nu),
+        nu=jnp.where(accept, 2.0, state.nu * 2.0),
+    )
+
+
+def step_status(config: SolverConfig, status: Array, finite_step: Array, delta: Array, x: Array, lam, it) -> Array:
+    """The stopping tests after a step δ is computed (the first that holds wins): the step is tiny
+    against ‖x‖, λ has grown past ``lambda_max``, or the iteration budget is spent.  Shared by the
+    dense and the structured (:mod:`mbcal.structured`) loops."""
+    step = jnp.sqrt(jnp.sum(delta * delta))
+    xnorm = jnp.sqrt(jnp.sum(x * x))
+    small = finite_step & (step <= config.xtol * (xnorm + config.xtol))
+    status = jnp.where((status == 0) & small, Status.CONVERGED_STEP, status)
+    status = jnp.where((status == 0) & (lam > config.lambda_max), Status.STALLED, status)
+    return jnp.where((status == 0) & (it >= config.max_iterations), Status.MAX_ITERATIONS, status)
 
 
 class _LMState(NamedTuple):
@@ -411,21 +492,9 @@ def _lm_single(
 
     def body(state: _LMState) -> _LMState:
         x, r, rw, Jw, cost, x_try, predicted, lam, nu, D, it, status = state
-        first = it == 0
-        J_new, r_new = evaluate(x_try)
-        cost_new, rw_new, Jw_new = weighted(r_new, J_new)
-        ok = jnp.isfinite(cost_new) & jnp.all(jnp.isfinite(Jw_new))
-        actual = jnp.where(first, jnp.inf, -robust_change(loss, scale, r, jnp.where(ok, r_new, r)))
-        accept = ok & (first | (actual > 0))
-        rho = jnp.where(predicted > 0, actual / jnp.where(predicted > 0, predicted, 1.0), -1.0)
-        lam_acc = jnp.where(first, lam, lam * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3))
-        lam = jnp.where(accept, lam_acc, lam * nu)
-        nu = jnp.where(accept, 2.0, nu * 2.0)
-        x = jnp.where(accept, x_try, x)
-        r = jnp.where(accept, r_new, r)
-        rw = jnp.where(accept, rw_new, rw)
-        Jw = jnp.where(accept, Jw_new, Jw)
-        cost = jnp.where(accept, jnp.where(first, cost_new, cost - actual), cost)
+        trial = marquardt_trial(evaluate, weighted, loss, scale, state)
+        first, ok, accept, actual = trial.first, trial.ok, trial.accept, trial.actual
+        x, r, rw, Jw, cost, lam, nu = trial.x, trial.r, trial.rw, trial.Jw, trial.cost, trial.lam, trial.nu
         it = it + 1
         # Convergence of the step just taken.
         status = jnp.where(first & ~ok, Status.NON_FINITE, 0)
@@ -439,13 +508,13 @@ def _lm_single(
         D = jnp.maximum(D, jnp.diag(A))
         Dc = jnp.maximum(D, 1e-12 * jnp.maximum(jnp.max(D), 1e-300))
         if bounds is None:
-            delta = _solve_spd(A + lam * jnp.diag(Dc), -g)
+            delta = _solve_step(A + lam * jnp.diag(Dc), -g)
         else:
             # Active unknowns are held: their rows and columns of the damped system become the identity.
             free = ~active_set(x, g)
             both = free[:, None] & free[None, :]
             M = jnp.where(both, A + lam * jnp.diag(Dc), 0.0) + jnp.diag(jnp.where(free, 0.0, 1.0))
-            delta = _solve_spd(M, jnp.where(free, -g, 0.0))
+            delta = _solve_step(M, jnp.where(free, -g, 0.0))
         finite_step = jnp.all(jnp.isfinite(delta))
         delta = jnp.where(finite_step, delta, 0.0)
         if bounds is None:
@@ -455,13 +524,7 @@ def _lm_single(
             moved = x + delta
             taken = delta + (jnp.clip(moved, bounds[0], bounds[1]) - moved)
         predicted = jnp.where(finite_step, -(2.0 * g @ taken + taken @ (A @ taken)), -1.0)
-        step = jnp.sqrt(jnp.sum(delta * delta))
-        xnorm = jnp.sqrt(jnp.sum(x * x))
-        status = jnp.where(
-            (status == 0) & finite_step & (step <= config.xtol * (xnorm + config.xtol)), Status.CONVERGED_STEP, status
-        )
-        status = jnp.where((status == 0) & (lam > config.lambda_max), Status.STALLED, status)
-        status = jnp.where((status == 0) & (it >= config.max_iterations), Status.MAX_ITERATIONS, status)
+        status = step_status(config, status, finite_step, delta, x, lam, it)
         # A step that cannot be computed is a rejection: try again with a larger λ.
         x_next = x + delta if local is None else local.plus(x, delta)
         if bounds is not None:
@@ -502,7 +565,10 @@ class _Identity:
         return isinstance(other, _Identity) and other.obj is self.obj
 
 
-@functools.lru_cache(maxsize=64)
+# A few programs only: each compiled solver holds a few hundred memory maps of XLA's code (338 for
+# the room's), and a long process (the test suite) that kept 64 alive came near the kernel's limit
+# of 65,530 maps, where XLA:CPU crashes (issue 16).  Problems of one structure share one entry.
+@functools.lru_cache(maxsize=8)
 def _compiled(
     fun: Callable,
     config: SolverConfig,
@@ -577,7 +643,7 @@ def least_squares(
     """
     config = config or SolverConfig()
     x0 = np.atleast_2d(np.asarray(x0, dtype=float))
-    args = tuple(jnp.asarray(a) for a in args)
+    args = tuple(to_device(a) for a in args)  # not jnp.asarray: it compiles a program per shape
     local = local if config.manifold else None
     limits: tuple[np.ndarray, np.ndarray] | None = None
     if bounds is not None:
@@ -589,9 +655,9 @@ def least_squares(
             limits = (lower, upper)
             x0 = np.clip(x0, lower, upper)
     program = _compiled(fun, config, size, limits is not None, local if local is None else _Identity(local))
-    example: tuple[Any, ...] = (jnp.asarray(x0), args)
+    example: tuple[Any, ...] = (to_device(x0), args)
     if limits is not None:
-        example += (jnp.asarray(limits[0]), jnp.asarray(limits[1]))
+        example += (to_device(limits[0]), to_device(limits[1]))
     if cache_key is not None:
         key = Hasher().add(cache_key, repr(config), size, x0.shape, [(a.shape, str(a.dtype)) for a in args])
         if limits is not None:

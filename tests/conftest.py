@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -13,6 +14,8 @@ ROOT = Path(__file__).resolve().parents[1]
 MODELS = ROOT / "models"
 MEASUREMENTS = ROOT / "measurements"
 SHARED_DATA = ROOT.parent / "shared" / "data"
+# Debian's Chromium, driven by Playwright (its own browser download is impossible on these machines).
+CHROMIUM = "/usr/bin/chromium"
 
 # A true pose of the factory corner that differs from its model by a few centimetres and degrees.
 ROOM_TRUTH = {
@@ -60,3 +63,15 @@ def write_model(tmp_path, monkeypatch):
 def run_python(*args: str) -> subprocess.CompletedProcess:
     """Run ``python ARGS`` from the repository root (the bench scripts' smoke tests)."""
     return subprocess.run([sys.executable, *args], cwd=ROOT, capture_output=True, text=True, timeout=900)
+
+
+@pytest.fixture(scope="module")
+def browser():
+    """A headless Chromium for the module's page tests (.ci/run installs it when missing)."""
+    if not os.path.exists(CHROMIUM):
+        pytest.skip(f"{CHROMIUM} is not installed (apt-get install chromium; .ci/run does it)")
+    sync_api = pytest.importorskip("playwright.sync_api")
+    with sync_api.sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"])
+        yield b
+        b.close()

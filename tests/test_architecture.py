@@ -86,10 +86,11 @@ def test_the_layer_contracts_are_kept():
 def test_the_architecture_guide_names_every_module():
     text = (ROOT / "docs" / "architecture.md").read_text(encoding="utf-8")
     named = set(re.findall(r"`(mbcal/[\w/]+\.py)`", text))
-    modules = {p.relative_to(ROOT).as_posix() for p in (ROOT / "mbcal").rglob("*.py")}
-    modules -= {m for m in modules if m.endswith("__init__.py") and m != "mbcal/__init__.py"}
+    existing = {p.relative_to(ROOT).as_posix() for p in (ROOT / "mbcal").rglob("*.py")}
+    # A sub-package's __init__ may be named (when it does more than re-export) but need not be.
+    modules = existing - {m for m in existing if m.endswith("__init__.py") and m != "mbcal/__init__.py"}
     assert modules - named == set(), "modules missing from docs/architecture.md"
-    assert named - modules == set(), "docs/architecture.md names modules that do not exist"
+    assert named - existing == set(), "docs/architecture.md names modules that do not exist"
 
 
 def test_the_old_documented_module_paths_still_import_with_a_deprecation_warning():

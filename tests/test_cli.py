@@ -214,7 +214,19 @@ def test_demo_runs_the_seeds_room_calibration_end_to_end(tmp_path):
 
 @pytest.mark.parametrize(
     "command",
-    ["check", "scene", "solve", "simulate", "observe", "render", "demo", "detect", "calibrate-camera", "convert"],
+    [
+        "check",
+        "scene",
+        "solve",
+        "simulate",
+        "observe",
+        "render",
+        "demo",
+        "detect",
+        "calibrate-camera",
+        "convert",
+        "studio",
+    ],
 )
 def test_every_command_has_help_with_an_example(command):
     result = run(command, "--help")

@@ -20,6 +20,8 @@ def test_wheel_contains_the_grammar_and_loads_it(tmp_path):
     wheel = next(tmp_path.glob("mbcal-*.whl"))
     with zipfile.ZipFile(wheel) as z:
         assert z.read("mbcal/grammar/mdl.lark") == (ROOT / "grammar" / "mdl.lark").read_bytes()
+        for name in ("index.html", "studio.js", "studio.css"):  # the studio's page ships in the wheel
+            assert z.read(f"mbcal/studio/static/{name}") == (ROOT / "mbcal" / "studio" / "static" / name).read_bytes()
         z.extractall(tmp_path / "site")
     probe = (
         "import mbcal.language.parse as p, mbcal.language as l;"

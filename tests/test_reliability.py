@@ -297,5 +297,7 @@ def test_no_code_runs_from_model_or_measurement_text(tmp_path):
         mbcal.read_measurements(room_plan, mbcal.load_model(MODELS / "teleexistence.mdl"))
     assert not marker.exists()
     source = "".join(p.read_text() for p in (MODELS.parent / "mbcal").rglob("*.py"))
+    # Reading .npy files refuses pickles explicitly; that is the one allowed mention.
+    source = source.replace("allow_pickle=False", "")
     for forbidden in ("eval(", "exec(", "pickle", "marshal", "yaml.load", "allow_pickle=True"):
         assert forbidden not in source, forbidden

@@ -154,6 +154,19 @@ class RangeInfo:
     directions: np.ndarray  # (n, 3) unit vectors in the sensor frame
     max_range: float
     span: SourceSpan | None = field(default=None, repr=False)
+    # A depth camera (``range NAME(width = ..., height = ..., f = ...)``): pinhole intrinsics
+    # (fx, fy, cx, cy; OpenCV axes), image size, the depth unit of its images (m per count) and
+    # the valid range [min_range, max_range]; rays through the pixel centres, row by row.
+    intrinsics: tuple[float, float, float, float] | None = None
+    width: int = 0
+    height: int = 0
+    depth_scale: float = 1e-3
+    min_range: float = 0.0
+
+    @property
+    def is_depth_camera(self) -> bool:
+        """Whether the sensor is a depth camera (pinhole intrinsics and an image size)."""
+        return self.intrinsics is not None
 
 
 @dataclass(frozen=True, eq=False)

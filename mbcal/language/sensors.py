@@ -2,7 +2,8 @@
 
 ``camera NAME(width = ..., height = ..., f = ...)`` is a pinhole camera with OpenCV's axes and
 distortion model; ``range NAME(direction = ... | directions = [...] | fov = ..., rays = ...)`` a
-range sensor casting fixed rays from its frame's origin.
+range sensor casting fixed rays from its frame's origin; with ``width``, ``height`` and a focal
+length it is a depth camera (pinhole intrinsics, depth scale, valid range).
 """
 
 from __future__ import annotations
@@ -99,7 +100,16 @@ def range_sensor(c: Compiler, stmt: ast.RangeSensor, scope: Scope, frame: int, n
     if stmt.args:
         raise ArgumentError("range sensor settings are named: range NAME(direction = (0, 0, 1))", stmt.args[0].span)
     keys = [("direction", False), ("directions", False), ("fov", False), ("rays", False), ("max", False)]
+    keys += [(k, False) for k in DEPTH_SETTINGS]
     bound = bind(f"range {stmt.name}", keys, (), stmt.kwargs, stmt.span)
+    if "width" in bound or "height" in bound:
+        return _depth_camera(c, stmt, bound, scope, frame, name)
+    for key in DEPTH_SETTINGS:
+        if key in bound:
+            raise ArgumentError(
+                f"'{key}' is a depth camera's setting: give the image size too (width = ..., height = ...)",
+                bound[key].span,
+            )
     given = [k for k in ("direction", "directions", "fov") if k in bound]
     if len(given) != 1:
         raise ArgumentError(
@@ -137,3 +147,67 @@ def range_sensor(c: Compiler, stmt: ast.RangeSensor, scope: Scope, frame: int, n
             raise DimensionError("the maximum range must be a positive constant", bound["max"].span)
         max_range = float(node.value)
     return RangeInfo(name, frame, dirs, max_range, stmt.span)
+
+
+DEPTH_SETTINGS = ("width", "height", "f", "fx", "fy", "cx", "cy", "scale", "min")
+
+
+def _constant(c: Compiler, bound: dict, key: str, scope: Scope, dim, what: str) -> float | None:
+    node = c.arg(bound, key, scope, dim=dim, what=what)
+    if node is None:
+        return None
+    if not isinstance(node, Const) or not math.isfinite(float(node.value)):
+        raise MdlError(f"{what} must be a constant", bound[key].span)
+    return float(node.value)
+
+
+def _depth_camera(c: Compiler, stmt: ast.RangeSensor, bound: dict, scope: Scope, frame: int, name: str) -> RangeInfo:
+    """A depth camera: ``range NAME(width = W, height = H, f = F | fx = .., fy = .., [cx, cy],
+    [scale = 1 mm], [min = ...], [max = ...])`` — pinhole intrinsics in pixels (OpenCV's axes),
+    the depth unit of its images and the valid range; one ray through each pixel centre."""
+    for key in ("direction", "directions", "fov", "rays"):
+        if key in bound:
+            raise ArgumentError(
+                f"a depth camera's rays come from its intrinsics: drop '{key}' (or drop width and height)",
+                bound[key].span,
+            )
+    size = []
+    for key in ("width", "height"):
+        if key not in bound:
+            raise ArgumentError(f"depth camera '{stmt.name}' needs '{key}' (image size in pixels)", stmt.span)
+        v = _constant(c, bound, key, scope, DIMENSIONLESS, f"the depth camera's {key}")
+        if v is None or v != round(v) or not 1 <= v <= 16384:
+            raise DimensionError(
+                f"the depth camera's {key} must be a whole number of pixels in 1..16384", bound[key].span
+            )
+        size.append(int(v))
+    if size[0] * size[1] > 4_000_000:
+        raise DimensionError("a depth camera may have at most 4 million pixels", bound["width"].span)
+    f = _constant(c, bound, "f", scope, DIMENSIONLESS, "the focal length f (pixels)")
+    fx = _constant(c, bound, "fx", scope, DIMENSIONLESS, "fx (pixels)") or f
+    fy = _constant(c, bound, "fy", scope, DIMENSIONLESS, "fy (pixels)") or f
+    if fx is None or fy is None:
+        raise ArgumentError(
+            f"depth camera '{stmt.name}' needs a focal length: f = ... or fx = ..., fy = ...", stmt.span
+        )
+    if not (fx > 0 and fy > 0):
+        raise DimensionError("the focal length must be positive", (bound.get("f") or bound.get("fx") or stmt).span)
+    cx = _constant(c, bound, "cx", scope, DIMENSIONLESS, "cx (pixels)")
+    cy = _constant(c, bound, "cy", scope, DIMENSIONLESS, "cy (pixels)")
+    cx = (size[0] - 1) / 2.0 if cx is None else cx
+    cy = (size[1] - 1) / 2.0 if cy is None else cy
+    scale = _constant(c, bound, "scale", scope, LENGTH, "the depth scale (length per count)")
+    scale = 1e-3 if scale is None else scale
+    if not scale > 0:
+        raise DimensionError("the depth scale must be positive (e.g. scale = 1 mm)", bound["scale"].span)
+    lo = _constant(c, bound, "min", scope, LENGTH, "the minimum range") or 0.0
+    hi = _constant(c, bound, "max", scope, LENGTH, "the maximum range")
+    hi = 10.0 if hi is None else hi
+    if not 0 <= lo < hi:
+        raise DimensionError(
+            "the valid range needs 0 <= min < max", (bound.get("min") or bound.get("max") or stmt).span
+        )
+    u, v = np.meshgrid(np.arange(size[0], dtype=float), np.arange(size[1], dtype=float))
+    d = np.stack([(u.ravel() - cx) / fx, (v.ravel() - cy) / fy, np.ones(u.size)], axis=1)
+    dirs = d / np.linalg.norm(d, axis=1, keepdims=True)
+    return RangeInfo(name, frame, dirs, hi, stmt.span, (fx, fy, cx, cy), size[0], size[1], float(scale), float(lo))

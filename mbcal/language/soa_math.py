@@ -362,7 +362,9 @@ def to_arrays(value: Any, kind: str) -> Any:
 def stack_scalars(values: Sequence[Scalar]) -> Any:
     """Stack scalars (floats, numpy or JAX arrays that broadcast together) along a new last axis."""
     if all(isinstance(v, (float, np.ndarray)) for v in values):
-        return jnp().asarray(np.stack(np.broadcast_arrays(*[np.asarray(v, dtype=float) for v in values]), axis=-1))
+        from mbcal._jax import to_device  # not jnp.asarray: it compiles a program per shape (issue 16)
+
+        return to_device(np.stack(np.broadcast_arrays(*[np.asarray(v, dtype=float) for v in values]), axis=-1))
     xp = jnp()
     shape = xp.broadcast_shapes(*[xp.shape(v) for v in values])
     items = [xp.broadcast_to(xp.asarray(v, dtype=float), shape) for v in values]

@@ -28,14 +28,14 @@ from typing import Any
 import numpy as np
 from scipy.ndimage import map_coordinates
 
-from mbcal.api import calibrate
+from mbcal.api import calibrate, simulate
 from mbcal.errors import MbcalError
 from mbcal.geometry import transforms as geo
 from mbcal.geometry.camera import distort
 from mbcal.geometry.transforms import rpy_from_matrix
 from mbcal.language import ir
 from mbcal.language.model import Model
-from mbcal.measurements.sets import MeasurementSet
+from mbcal.measurements.sets import MeasurementSet, measurements_from_records
 from mbcal.modeling import modeler, parameter_vector
 from mbcal.params import ParameterSet
 from mbcal.render.views import Layer, draw_overlay, load_image, save_png
@@ -49,6 +49,9 @@ __all__ = [
     "initial_values",
     "calibrate_cameras",
     "CameraCalibration",
+    "plan_views",
+    "simulate_views",
+    "synthesize_images",
     "INTRINSIC_NAMES",
     "DISTORTION_NAMES",
 ]
@@ -78,7 +81,8 @@ def homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     for (x, y), (u, v) in zip(s, d):
         rows.append([-x, -y, -1, 0, 0, 0, u * x, u * y, u])
         rows.append([0, 0, 0, -x, -y, -1, v * x, v * y, v])
-    _, _, Vt = np.linalg.svd(np.asarray(rows))
+    # All of V but not the 2n × 2n U (issue 15); with 4 points (8 rows) the thin SVD lacks the null vector.
+    _, _, Vt = np.linalg.svd(np.asarray(rows), full_matrices=len(rows) < 9)
     Hn = Vt[-1].reshape(3, 3)
     H = np.linalg.inv(Td) @ Hn @ Ts
     return H / H[2, 2]
@@ -585,6 +589,40 @@ def plan_views(
         _set_pose(values, names, T_local)
         views[f"view{k + 1:02d}"] = values
     return views
+
+
+def simulate_views(
+    model: Model,
+    n: int,
+    known: Mapping[str, float],
+    *,
+    seed: int = 0,
+    sigma: float = 0.5,
+    target: str | None = None,
+    camera: str | None = None,
+    distance: tuple[float, float] = (0.35, 0.6),
+    tilt_deg: float = 35.0,
+) -> tuple[MeasurementSet, dict[str, float]]:
+    """Simulated corner measurements of a target in ``n`` random views (:func:`plan_views`).
+
+    ``known`` holds the true values of the shared unknowns (the intrinsics); each view's pose is
+    drawn by :func:`plan_views`.  Every corner is measured with σ = ``sigma`` px and Gaussian noise of
+    that σ; corners outside the image are left out.  Returns the measurements and the complete truth
+    (``known`` plus ``board.x@view01`` …), for checking an estimate or planning a calibration
+    before a board is printed.
+    """
+    poses = plan_views(model, n, seed=seed, target=target, camera=camera, distance=distance, tilt_deg=tilt_deg)
+    truth = dict(known)
+    for view, pose in poses.items():
+        truth.update({f"{name}@{view}": value for name, value in pose.items()})
+    cam = model.cameras[model.camera_index(camera)] if camera else model.cameras[0]
+    records = [
+        {"kind": "image_point", "config": view, "camera": cam.name, "point": p, "u": 0.0, "v": 0.0, "sigma": sigma}
+        for view in poses
+        for p in model.target(target).points
+    ]
+    plan = measurements_from_records(records, model)
+    return simulate(model, plan, truth, noise=1.0, seed=seed, drop_invisible=True), truth
 
 
 def synthesize_images(

@@ -1,0 +1,673 @@
+"""Automatic calibration from scans: point-to-surface residuals against the model's shapes.
+
+For every scan point p (in its sensor frame, configuration c) the residual is its distance to
+the nearest surface of the model, over σ::
+
+    r_i(x) = min_s dist_s( T_world_sensor(x, c) · p_i ) / σ_i
+
+with the exact, differentiable distance kernels of the shape registry (every shape kind and
+meshes; :mod:`mbcal.geometry.raycast`).  The distance is continuous in the parameters (the
+nearest surface may change, its distance does not jump), unlike the range along a ray at a
+silhouette edge.  A robust loss (Cauchy, c = 2.385 σ) is the default: points of things the
+model does not hold stay in the problem but pull little.
+
+The steps of :func:`fit_scans`:
+
+1. each scan is voxel down-sampled (``voxel``, in its own frame);
+2. **coarse start**: when the points lie far from the model at the starting values (median
+   distance above ``coarse_distance``) a global rigid alignment (trimmed ICP against points
+   sampled on the model's surface; Kabsch steps from trimesh) moves the cloud onto the model,
+   and the unknowns are fitted to that rigid motion of the shapes;
+3. **crop**: points farther than ``crop`` from every modelled surface at the start are left out
+   (the rest of the room, the floor far away);
+4. the Marquardt solver of :mod:`mbcal.solver` with the robust loss, its random restarts, and
+   the prior in information form (a previous posterior, :class:`Prior`) plus the model's σ;
+5. **outliers**: points farther than ``outlier_sigma`` σ from every surface at the solution
+   belong to no modelled surface; they are counted, listed and can be written as a PLY;
+6. the covariance from the inliers' Jacobian (and the prior), the reduced χ² of the inliers,
+   and per object the share of its points beyond ``outlier_sigma`` σ: an object whose share
+   exceeds ``misfit_fraction`` is named as a **structural misfit** (its shape no longer fits).
+
+The point arrays are arguments of the compiled program (padded to a multiple of 4096 with
+zero-weight rows), so new scans of the same size class reuse it: no recompilation per batch.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from mbcal._jax import jax, jnp
+from mbcal.cache import enable_compilation_cache
+from mbcal.errors import SolverError
+from mbcal.geometry.raycast import distance_to_shapes, surface_distance
+from mbcal.language.model import Model
+from mbcal.modeling import Needs, modeler
+from mbcal.params import ParameterSet
+from mbcal.range.scans import Scan
+from mbcal.solver import Loss, SolverConfig, least_squares, random_starts
+
+Array = Any
+
+__all__ = ["FitOptions", "Prior", "ScanFit", "Misfit", "fit_scans", "scan_world_points", "residuals_at", "BUCKET"]
+
+BUCKET = 4096
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """How :func:`fit_scans` runs (the CLI's defaults)."""
+
+    voxel: float = 0.01
+    """Voxel size (m) of the down-sampling; 0: every point."""
+    crop: float = 0.10
+    """Points farther than this (m) from every modelled surface at the start are left out."""
+    loss: str = "cauchy"
+    """Robust loss: ``cauchy`` (default), ``huber`` or ``linear`` (plain least squares)."""
+    outlier_sigma: float = 3.0
+    """Points farther than this many σ from every surface at the solution are outliers."""
+    misfit_fraction: float = 0.2
+    """An object with more than this share of its points beyond ``outlier_sigma`` σ is a structural misfit."""
+    misfit_min_points: int = 20
+    """... and at least this many such points."""
+    restarts: int = 1
+    """Starting points: the (coarse-aligned) start, plus random ones in the search ranges."""
+    probe_rounds: int = 3
+    """After convergence, restart from ± ``probe_sigma`` σ along the two weakest directions and keep
+    a better minimum, up to this many rounds (0: off)."""
+    probe_sigma: float = 4.0
+    graduated: float = 10.0
+    """Solve first with the robust loss's scale times this (then the nominal scale); 1: off."""
+    seed: int = 0
+    coarse: str = "auto"
+    """``auto``: align globally when the points lie far from the model; ``always``; ``never``."""
+    coarse_distance: float = 0.02
+    """``auto`` aligns when the median distance of the points to the model exceeds this (m)."""
+    max_points: int = 60000
+    """At most this many points (after down-sampling and crop) go into the fit (a seeded random subset)."""
+    max_iterations: int = 60
+    priors: bool = True
+    """Use the model's prior σ of the unknowns."""
+    known: Mapping[str, float] | None = None
+
+
+@dataclass(frozen=True)
+class Prior:
+    """A Gaussian prior in information form: mean and information matrix Λ = Σ⁻¹ over ``names``."""
+
+    names: tuple[str, ...]
+    mean: np.ndarray
+    information: np.ndarray
+
+
+@dataclass(frozen=True)
+class Misfit:
+    """Per object: how its points fit its modelled surface."""
+
+    object: str
+    shapes: tuple[str, ...]
+    points: int
+    beyond: int
+    rms: float
+    flagged: bool
+
+    @property
+    def fraction(self) -> float:
+        return self.beyond / self.points if self.points else 0.0
+
+    def message(self, outlier_sigma: float, sigma: float) -> str:
+        kinds = " and ".join(dict.fromkeys(s.split(":")[1] for s in self.shapes))
+        return (
+            f"{self.object}: {100 * self.fraction:.0f} % of its points are farther than {outlier_sigma:g}σ "
+            f"({1000 * outlier_sigma * sigma:.3g} mm) from the modelled {kinds}; its shape no longer fits"
+        )
+
+
+@dataclass
+class ScanFit:
+    """What a scan fit found."""
+
+    names: list[str]
+    x: np.ndarray
+    x_start: np.ndarray
+    covariance: np.ndarray
+    information: np.ndarray
+    chi2: float
+    dof: int
+    points: np.ndarray  # (N, 3) world points used in the fit (at the estimate)
+    residuals: np.ndarray  # (N,) distance to the nearest surface (m) at the estimate
+    sigma: np.ndarray  # (N,) σ of each point (m)
+    outlier: np.ndarray  # (N,) bool
+    cropped: int
+    far: np.ndarray  # (cropped, 3) world points left out as farther than the crop distance from the model
+    total_points: int
+    misfits: list[Misfit]
+    coarse: np.ndarray | None  # the global alignment applied (4×4), None when not needed
+    elapsed: float
+    converged: bool
+    outlier_sigma: float
+    units: dict[str, str] = field(default_factory=dict)
+    unobservable: list[str] = field(default_factory=list)
+
+    @property
+    def values(self) -> dict[str, float]:
+        return {n: float(v) for n, v in zip(self.names, self.x)}
+
+    @property
+    def std(self) -> dict[str, float]:
+        return {n: float(np.sqrt(max(self.covariance[i, i], 0.0))) for i, n in enumerate(self.names)}
+
+    @property
+    def reduced_chi2(self) -> float:
+        return self.chi2 / max(self.dof, 1)
+
+    @property
+    def n_outliers(self) -> int:
+        """Points that belong to no modelled surface: cropped as far from the model, or farther
+        than ``outlier_sigma`` σ from every surface at the estimate."""
+        return int(self.outlier.sum()) + self.cropped
+
+    @property
+    def outlier_fraction(self) -> float:
+        return self.n_outliers / max(len(self.outlier) + self.cropped, 1)
+
+    @property
+    def near_outlier_fraction(self) -> float:
+        """The share of outliers among the points within the crop distance."""
+        return int(self.outlier.sum()) / max(len(self.outlier), 1)
+
+    @property
+    def outlier_points(self) -> np.ndarray:
+        return np.vstack([self.points[self.outlier], self.far])
+
+    @property
+    def structural(self) -> list[Misfit]:
+        return [m for m in self.misfits if m.flagged]
+
+    @property
+    def ok(self) -> bool:
+        """Converged, observable, inliers consistent with σ (reduced χ² < 2), no structural misfit,
+        and fewer than half the points outliers."""
+        return (
+            self.converged
+            and not self.unobservable
+            and self.reduced_chi2 < 2.0
+            and not self.structural
+            and self.near_outlier_fraction < 0.5
+        )
+
+    def prior(self) -> Prior:
+        """The posterior as a prior for the next update (information form)."""
+        return Prior(tuple(self.names), self.x.copy(), self.information.copy())
+
+    def text(self) -> str:
+        from mbcal.text import table  # the terminal table helper
+
+        sig = float(np.median(self.sigma)) if len(self.sigma) else 0.0
+        lines = [
+            f"scan fit: {len(self.points)} points used of {self.total_points} "
+            f"({self.cropped} cropped as far from the model), σ {1000 * sig:.3g} mm",
+        ]
+        if self.coarse is not None:
+            t = self.coarse[:3, 3]
+            ang = np.degrees(np.arccos(np.clip((np.trace(self.coarse[:3, :3]) - 1) / 2, -1, 1)))
+            lines.append(f"coarse alignment: moved the cloud {100 * np.linalg.norm(t):.3g} cm and {ang:.3g}°")
+        rows = []
+        std = self.std
+        for i, n in enumerate(self.names):
+            unit = self.units.get(n, "")
+            f = np.degrees if unit == "deg" else (lambda v: v)
+            rows.append([n, f"{f(self.x_start[i]):.6g}", f"{f(self.x[i]):.6g}", f"{f(std[n]):.3g}", unit])
+        lines.append(table(["unknown", "start", "estimate", "σ", "unit"], rows))
+        lines.append(
+            f"inliers: reduced χ² {self.reduced_chi2:.3g} (dof {self.dof}); outliers (on no modelled surface): "
+            f"{self.n_outliers} ({100 * self.outlier_fraction:.1f} %): {self.cropped} beyond the crop distance, "
+            f"{int(self.outlier.sum())} within it but farther than {self.outlier_sigma:g}σ"
+        )
+        for m in self.structural:
+            lines.append("structural misfit: " + m.message(self.outlier_sigma, sig))
+        for name in self.unobservable:
+            lines.append(f"unobservable: {name}")
+        verdict = "ok" if self.ok else "NOT trustworthy"
+        if not self.converged:
+            verdict += " (the solver did not converge)"
+        elif self.reduced_chi2 >= 2.0:
+            verdict += " (the inliers scatter more than σ: a wrong σ, or a model that does not fit)"
+        lines.append(f"verdict: {verdict}")
+        return "\n".join(lines)
+
+    def to_json(self) -> dict[str, Any]:
+        std = self.std
+        return {
+            "values": self.values,
+            "std": std,
+            "chi2": self.chi2,
+            "dof": self.dof,
+            "reduced_chi2": self.reduced_chi2,
+            "points": len(self.points),
+            "total_points": self.total_points,
+            "cropped": self.cropped,
+            "outliers": {
+                "count": self.n_outliers,
+                "fraction": self.outlier_fraction,
+                "cropped": self.cropped,
+                "beyond_sigma": int(self.outlier.sum()),
+            },
+            "structural_misfits": [m.object for m in self.structural],
+            "objects": [
+                {"object": m.object, "points": m.points, "beyond": m.beyond, "rms": m.rms, "flagged": m.flagged}
+                for m in self.misfits
+            ],
+            "unobservable": self.unobservable,
+            "converged": self.converged,
+            "ok": self.ok,
+            "elapsed": self.elapsed,
+        }
+
+
+# ---- the compiled functions, one set per problem structure -------------------------------------------------
+
+
+class _Engine:
+    """Residual, Jacobian and per-shape distances for one model, unknowns, configurations and scan frames."""
+
+    def __init__(self, model: Model, ps: ParameterSet, pairs: tuple[tuple[int, int], ...]):
+        self.model, self.ps, self.pairs = model, ps, pairs
+        self.shapes = list(model.shapes)
+        C = len(ps.configurations)
+        needs = Needs(frames=frozenset(f for _, f in pairs if f >= 0), shapes=None)
+        n_frames = len(model.frames)
+
+        def scenes(x, known):
+            rows, configs = ps.views(x, known)
+            return jax.vmap(lambda row, c: modeler(model, ps.view(x, row, c), needs))(rows, configs)
+
+        def world(x, known, pts, pair):
+            sc = scenes(x, known)
+            out = jnp.zeros_like(pts)
+            for k, (c, f) in enumerate(pairs):
+                if f < 0 or f >= n_frames:
+                    p = pts
+                else:
+                    T = sc.frame_poses[c, f]
+                    p = jnp.sum(T[None, :3, :3] * pts[:, None, :], axis=2) + T[:3, 3]
+                out = out + jnp.where((pair == k)[:, None], p, 0.0) if len(pairs) > 1 else p
+            return sc, out
+
+        pair_config = np.array([c for c, _ in pairs], dtype=np.int64)
+
+        def distances(x, known, pts, pair):
+            sc, w = world(x, known, pts, pair)
+            if C == 1:
+                return distance_to_shapes(sc.shape_poses[0], sc.shape_dims[0], self.shapes, w)
+            cfg = jnp.asarray(pair_config)[pair]
+            d = jnp.zeros(pts.shape[0])
+            for c in range(C):
+                dc = distance_to_shapes(sc.shape_poses[c], sc.shape_dims[c], self.shapes, w)
+                d = jnp.where(cfg == c, dc, d)
+            return d
+
+        def residual(x, pts, pair, weight, known, A, b):
+            r = distances(x, known, pts, pair) * weight
+            return jnp.concatenate([r, A @ x - b])
+
+        def each_shape(x, known, pts, pair):
+            sc, w = world(x, known, pts, pair)
+            cfg = jnp.asarray(pair_config)[pair]
+            cols = []
+            for s, shape in enumerate(self.shapes):
+                d = jnp.full(pts.shape[0], jnp.inf)
+                for c in range(C):
+                    T = sc.shape_poses[c, s]
+                    local = jnp.sum((w - T[:3, 3])[:, :, None] * T[None, :3, :3], axis=1)
+                    dc = surface_distance(shape.kind, local, sc.shape_dims[c, s], shape.mesh)
+                    d = dc if C == 1 else jnp.where(cfg == c, dc, d)
+                cols.append(d)
+            return jnp.stack(cols, axis=1), w
+
+        def shape_frames(x, known):
+            sc = scenes(x, known)
+            return sc.shape_poses[:, :, :3, :]
+
+        enable_compilation_cache()
+        self.residual = residual  # the same object every call: least_squares caches its program on it
+        self.jacobian = jax.jit(jax.jacfwd(residual))
+        self.each_shape = jax.jit(each_shape)
+        self.world = jax.jit(lambda x, known, pts, pair: world(x, known, pts, pair)[1])
+        self.shape_frames = jax.jit(shape_frames)
+
+
+_ENGINES: dict[Any, _Engine] = {}
+
+
+def _engine(model: Model, ps: ParameterSet, pairs: tuple[tuple[int, int], ...]) -> _Engine:
+    key = (
+        id(model),
+        tuple(ps.names),
+        ps.configurations,
+        pairs,
+        tuple(sorted(map(tuple, np.argwhere(ps._source >= 0).tolist()))),
+    )
+    eng = _ENGINES.get(key)
+    if eng is None or eng.model is not model:
+        if len(_ENGINES) > 16:
+            _ENGINES.clear()
+        eng = _Engine(model, ps, pairs)
+        _ENGINES[key] = eng
+    return eng
+
+
+def _pad(n: int) -> int:
+    return max(BUCKET, -(-n // BUCKET) * BUCKET)
+
+
+# ---- priors ---------------------------------------------------------------------------------------------
+
+
+def _prior_rows(ps: ParameterSet, prior: Prior | None, model_priors: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Rows A, b (2n × n, 2n) with the prior residual A x − b: the information-form prior (Λ = LLᵀ
+    → Lᵀ(x − m)) and the model's σ priors (x_j − nominal_j)/σ_j."""
+    n = ps.size
+    A = np.zeros((2 * n, n))
+    b = np.zeros(2 * n)
+    if prior is not None:
+        index = {name: j for j, name in enumerate(ps.names)}
+        take = [(i, index[name]) for i, name in enumerate(prior.names) if name in index]
+        Lam = np.zeros((n, n))
+        m = np.array(ps.x0, dtype=float)
+        src = np.array([i for i, _ in take], dtype=np.int64)
+        dst = np.array([j for _, j in take], dtype=np.int64)
+        if len(take):
+            Lam[np.ix_(dst, dst)] = np.asarray(prior.information)[np.ix_(src, src)]
+            m[dst] = np.asarray(prior.mean)[src]
+        e, V = np.linalg.eigh(0.5 * (Lam + Lam.T))
+        R = np.sqrt(np.clip(e, 0.0, None))[:, None] * V.T  # RᵀR = Λ
+        A[:n] = R
+        b[:n] = R @ m
+    if model_priors:
+        sig = ps.prior_sigma
+        has = np.isfinite(sig)
+        j = np.nonzero(has)[0]
+        A[n + j, j] = 1.0 / sig[j]
+        b[n + j] = ps.prior_mean[j] / sig[j]
+    return A, b
+
+
+# ---- coarse alignment -----------------------------------------------------------------------------------
+
+
+def _icp(cloud: np.ndarray, target: np.ndarray, seed: int = 0) -> np.ndarray:
+    """Trimmed point-to-point ICP: the rigid T (4×4) with T·cloud ≈ target, from the identity,
+    with a shrinking correspondence distance (50 cm → 1 cm)."""
+    from scipy.spatial import cKDTree
+    from trimesh.registration import procrustes  # Kabsch's best rigid motion (no scaling, no reflection)
+
+    rng = np.random.default_rng(seed)
+    src = cloud if len(cloud) <= 4000 else cloud[rng.choice(len(cloud), 4000, replace=False)]
+    tree = cKDTree(target)
+    T = np.eye(4)
+    # Start by matching centroids of the cloud and of the target points near it.
+    for radius in (0.5, 0.3, 0.2, 0.1, 0.05, 0.03, 0.02, 0.01):
+        for _ in range(12):
+            moved = src @ T[:3, :3].T + T[:3, 3]
+            d, idx = tree.query(moved, distance_upper_bound=radius)
+            ok = np.isfinite(d)
+            if ok.sum() < 10:
+                break
+            step, _, _ = procrustes(moved[ok], target[idx[ok]], reflection=False, translation=True, scale=False)
+            T = step @ T
+            if np.linalg.norm(step[:3, 3]) < 1e-5 and np.allclose(step[:3, :3], np.eye(3), atol=1e-6):
+                break
+    return T
+
+
+def _model_samples(eng: _Engine, x: np.ndarray, known: np.ndarray, near: np.ndarray, count: int = 40000) -> np.ndarray:
+    """Points on the model's surfaces (configuration 0) within 0.5 m of the box around ``near``."""
+    import trimesh  # the model's meshes, sampled for the global alignment
+
+    rows, configs = eng.ps.views(jnp.asarray(x), jnp.asarray(known))
+    scene = modeler(eng.model, eng.ps.view(jnp.asarray(x), rows[0], configs[0]))
+    lo, hi = near.min(axis=0) - 0.5, near.max(axis=0) + 0.5
+    meshes = list(scene.to_trimesh(plane_size=2 * float(np.max(hi - lo)) + 2).dump())
+    mesh = trimesh.util.concatenate(meshes)
+    pts, _ = trimesh.sample.sample_surface(mesh, count, seed=0)
+    keep = np.all((pts >= lo) & (pts <= hi), axis=1)
+    return np.asarray(pts[keep])
+
+
+def _fit_rigid_motion(eng: _Engine, x: np.ndarray, known: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Unknowns that move the model's shapes by T⁻¹ (the cloud moved by T onto the model at x)."""
+    Ti = np.linalg.inv(T)
+    F0 = np.asarray(eng.shape_frames(jnp.asarray(x), jnp.asarray(known)))  # (C, S, 3, 4)
+    target = np.einsum("ij,csjk->csik", Ti[:3, :3], F0)
+    target[..., 3] += Ti[:3, 3]
+
+    def fun(xx, tgt, kk):
+        return jnp.reshape(eng.shape_frames(xx, kk) - tgt, (-1,))
+
+    out = least_squares(fun, x[None], args=(target, known), config=SolverConfig(max_iterations=50))
+    return np.asarray(out.x_best)
+
+
+# ---- the fit ----------------------------------------------------------------------------------------------
+
+
+def scan_world_points(model: Model, scan: Scan, values: Mapping[str, float] | None = None) -> np.ndarray:
+    """A scan's points in world coordinates for parameter values (default: nominal)."""
+    if scan.frame == "world":
+        return np.asarray(scan.points, dtype=float)
+    scene = modeler(model, dict(values or {}), Needs.everything())
+    T = np.asarray(scene.frame(scan.frame))
+    return scan.points @ T[:3, :3].T + T[:3, 3]
+
+
+def residuals_at(model: Model, scan: Scan, values: Mapping[str, float] | None = None) -> np.ndarray:
+    """Each scan point's distance (m) to the nearest modelled surface, for parameter values."""
+    scene = modeler(model, dict(values or {}), Needs.everything())
+    w = scan_world_points(model, scan, values)
+    return np.asarray(distance_to_shapes(scene.shape_poses, scene.shape_dims, list(model.shapes), jnp.asarray(w)))
+
+
+def fit_scans(
+    model: Model,
+    scans: Sequence[Scan],
+    estimate: Sequence[str],
+    options: FitOptions | None = None,
+    *,
+    initial: Mapping[str, float] | None = None,
+    prior: Prior | None = None,
+    per_configuration: Mapping[str, Mapping[str, float]] | None = None,
+) -> ScanFit:
+    """Estimate the unknowns from scans by point-to-surface residuals (see the module doc)."""
+    o = options or FitOptions()
+    t0 = time.perf_counter()
+    if not scans:
+        raise SolverError("no scans to fit")
+    try:
+        loss = Loss(o.loss)
+    except ValueError:
+        raise SolverError(f"unknown loss '{o.loss}' (cauchy, huber or linear)") from None
+    configs = list(dict.fromkeys(s.config for s in scans))
+    ps = ParameterSet(model, list(estimate), known=o.known, configurations=configs, per_configuration=per_configuration)
+    if ps.size == 0:
+        raise SolverError("nothing to estimate: name the unknowns (--estimate NAME|GLOB)")
+    pair_keys: list[tuple[int, int]] = []
+    pts_list, pair_list, sig_list = [], [], []
+    total = 0
+    for s in scans:
+        f = -1 if s.frame == "world" else model.frame_index(s.frame)
+        key = (configs.index(s.config), f)
+        if key not in pair_keys:
+            pair_keys.append(key)
+        p = np.asarray(s.downsampled(o.voxel), dtype=float)
+        total += len(s)
+        pts_list.append(p)
+        pair_list.append(np.full(len(p), pair_keys.index(key), dtype=np.int64))
+        sig_list.append(s.sigmas(p))
+    pairs = tuple(pair_keys)
+    eng = _engine(model, ps, pairs)
+    pts = np.concatenate(pts_list)
+    pair = np.concatenate(pair_list)
+    sig = np.concatenate(sig_list)
+    known = np.asarray(ps.known)
+    x = ps.x0.copy()
+    if initial:
+        x = ps.from_dict({k: v for k, v in initial.items() if k in ps.names}, default=x)
+    x_start = x.copy()
+
+    def dist(xx, p, pr):
+        n = len(p)
+        m = _pad(n)
+        P = np.zeros((m, 3))
+        P[:n] = p
+        Q = np.zeros(m, dtype=np.int64)
+        Q[:n] = pr
+        D = eng.each_shape(jnp.asarray(xx), jnp.asarray(known), jnp.asarray(P), jnp.asarray(Q))[0]
+        return np.min(np.asarray(D), axis=1)[:n]
+
+    coarse = None
+    if o.coarse != "never":
+        d0 = dist(x, pts, pair)
+        if o.coarse == "always" or float(np.median(d0)) > o.coarse_distance:
+            W = _world(eng, x, known, pts, pair)
+            target = _model_samples(eng, x, known, W)
+            if len(target) >= 10:
+                coarse = _icp(W, target, o.seed)
+                x = _fit_rigid_motion(eng, x, known, coarse)
+    d = dist(x, pts, pair)
+    keep = d <= o.crop
+    cropped = int((~keep).sum())
+    far_pts, far_pair = pts[~keep], pair[~keep]
+    pts, pair, sig = pts[keep], pair[keep], sig[keep]
+    if len(pts) < ps.size:
+        raise SolverError(
+            f"only {len(pts)} scan points lie within {o.crop:g} m of the model at the start",
+            hint="is the scan in the right frame? try a larger --crop, or a global alignment (--coarse always)",
+        )
+    if len(pts) > o.max_points:
+        sel = np.sort(np.random.default_rng(o.seed).choice(len(pts), o.max_points, replace=False))
+        pts, pair, sig = pts[sel], pair[sel], sig[sel]
+    n = len(pts)
+    m = _pad(n)
+    P = np.zeros((m, 3))
+    P[:n] = pts
+    Q = np.zeros(m, dtype=np.int64)
+    Q[:n] = pair
+    Wt = np.zeros(m)
+    Wt[:n] = 1.0 / sig
+    A, b = _prior_rows(ps, prior, o.priors)
+    args = (P, Q, Wt, known, A, b)
+    starts = random_starts(x, ps.lower, ps.upper, max(1, o.restarts), o.seed, limits=ps.bounds)
+    config = SolverConfig(loss=loss, max_iterations=o.max_iterations, ftol=1e-12, xtol=1e-12, gtol=1e-12)
+    if loss != Loss.LINEAR and o.graduated > 1:
+        # Graduated robustness: a wide loss first, so points that moved far (a lever that turned)
+        # still pull before the nominal loss would dismiss them as outliers.
+        wide = SolverConfig(loss=loss, loss_scale=o.graduated * loss.default_scale, max_iterations=o.max_iterations)
+        first = least_squares(eng.residual, starts, args=args, config=wide, size=m + 2 * ps.size, bounds=ps.bounds)
+        if first.best >= 0:
+            starts = first.x
+    solved = least_squares(eng.residual, starts, args=args, config=config, size=m + 2 * ps.size, bounds=ps.bounds)
+    if solved.best < 0:
+        raise SolverError("the scan fit failed: residuals are not finite at any start")
+    xb = np.asarray(solved.x[solved.best], dtype=float)
+    converged = int(solved.status[solved.best]) > 0 and int(solved.iterations[solved.best]) < o.max_iterations
+    cost = float(solved.cost[solved.best])
+    for _ in range(o.probe_rounds):
+        # Probe along the weakest directions: the nearest surface of a point changes at edges, so
+        # S is only piecewise smooth and Marquardt may stop in a shallow pocket a few σ off.
+        J = np.asarray(eng.jacobian(jnp.asarray(xb), *(jnp.asarray(a) for a in args)))
+        e, V = np.linalg.eigh(J.T @ J)
+        probes = [xb]
+        for k in range(min(2, ps.size)):
+            step = o.probe_sigma * V[:, k] / np.sqrt(max(e[k], 1e-300))
+            probes += [xb + step, xb - step]
+        again = least_squares(
+            eng.residual, np.array(probes), args=args, config=config, size=m + 2 * ps.size, bounds=ps.bounds
+        )
+        if again.best < 0 or float(again.cost[again.best]) >= cost - 1e-9 * max(cost, 1.0):
+            break
+        xb, cost = np.asarray(again.x[again.best], dtype=float), float(again.cost[again.best])
+        converged = int(again.status[again.best]) > 0 and int(again.iterations[again.best]) < o.max_iterations
+    # Per point and shape distances at the solution: outliers, association, misfit per object.
+    D, Wpts = (
+        np.asarray(v) for v in eng.each_shape(jnp.asarray(xb), jnp.asarray(known), jnp.asarray(P), jnp.asarray(Q))
+    )
+    D, Wpts = D[:n], Wpts[:n]
+    nearest = np.argmin(D, axis=1)
+    res = D[np.arange(n), nearest]
+    outlier = res > o.outlier_sigma * sig
+    J = np.asarray(eng.jacobian(jnp.asarray(xb), *(jnp.asarray(a) for a in args)))
+    Jm = J[:n][~outlier]
+    Jp = J[m:]
+    info = Jm.T @ Jm + Jp.T @ Jp
+    unobservable: list[str] = []
+    e, V = np.linalg.eigh(info)
+    tol = max(float(e.max()), 1e-300) * 1e-12
+    if np.any(e <= tol):
+        for weak in np.nonzero(e <= tol)[0]:
+            v = V[:, weak]
+            parts = [f"{v[j]:+.2f}·{ps.names[j]}" for j in np.argsort(-np.abs(v)) if abs(v[j]) > 0.1]
+            unobservable.append(" ".join(parts))
+        cov = np.linalg.pinv(info, rcond=1e-12)
+        cov[np.ix_(np.abs(V[:, e <= tol]).max(axis=1) > 0.1, np.abs(V[:, e <= tol]).max(axis=1) > 0.1)] = np.inf
+    else:
+        cov = np.linalg.inv(info)
+    rin = (res / sig)[~outlier]
+    chi2 = float(np.sum(rin**2))
+    dof = max(int((~outlier).sum()) - ps.size, 1)
+    misfits = _misfits(model, nearest, outlier, res, o)
+    units = {u.name: u.param.unit for u in ps.unknowns}
+    return ScanFit(
+        names=list(ps.names),
+        x=xb,
+        x_start=x_start,
+        covariance=cov,
+        information=info,
+        chi2=chi2,
+        dof=dof,
+        points=Wpts,
+        residuals=res,
+        sigma=sig,
+        outlier=outlier,
+        cropped=cropped,
+        far=_world(eng, xb, known, far_pts, far_pair) if len(far_pts) else np.zeros((0, 3)),
+        total_points=total,
+        misfits=misfits,
+        coarse=coarse,
+        elapsed=time.perf_counter() - t0,
+        converged=converged,
+        outlier_sigma=o.outlier_sigma,
+        units=units,
+        unobservable=unobservable,
+    )
+
+
+def _world(eng: _Engine, x: np.ndarray, known: np.ndarray, pts: np.ndarray, pair: np.ndarray) -> np.ndarray:
+    n = len(pts)
+    m = _pad(n)
+    P = np.zeros((m, 3))
+    P[:n] = pts
+    Q = np.zeros(m, dtype=np.int64)
+    Q[:n] = pair
+    return np.asarray(eng.world(jnp.asarray(x), jnp.asarray(known), jnp.asarray(P), jnp.asarray(Q)))[:n]
+
+
+def _misfits(model: Model, nearest: np.ndarray, outlier: np.ndarray, res: np.ndarray, o: FitOptions) -> list[Misfit]:
+    """Per object (the frame that declares a shape): its points, those beyond the outlier limit, the flag."""
+    owner = [model.frames[s.frame].name if s.frame >= 0 else "world" for s in model.shapes]
+    out = []
+    for obj in dict.fromkeys(owner):
+        shapes = [k for k, ow in enumerate(owner) if ow == obj]
+        mine = np.isin(nearest, shapes)
+        count = int(mine.sum())
+        if count == 0:
+            continue
+        beyond = int((mine & outlier).sum())
+        flagged = beyond >= o.misfit_min_points and beyond > o.misfit_fraction * count
+        names = tuple(f"{model.shapes[k].name}:{model.shapes[k].kind}" for k in shapes)
+        out.append(Misfit(obj, names, count, beyond, float(np.sqrt(np.mean(res[mine] ** 2))), flagged))
+    return out

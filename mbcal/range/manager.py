@@ -1,0 +1,339 @@
+"""The environment model manager (seed §2.1, §3.5): continuous correction of the model from scans.
+
+Each batch of scans (files appearing in a folder, or :meth:`ModelManager.update` calls) updates
+the estimate, warm-started from the current one, with the previous posterior carried as a prior
+in information form (Λ, m) — widened by the process noise, so the estimate tightens over batches
+and still follows slow drift.  After each update the manager
+
+* appends one line to the **journal** ``history.jsonl`` (estimate, σ, χ², time, the posterior's
+  mean and information, the files; written with one ``write`` and ``fsync``: the commit point),
+* replaces the **snapshot** ``state.json`` atomically (the last accepted state),
+* replaces the **calibrated model** ``<model>.calibrated.mdl`` atomically (never the input),
+* flags a **drift** (an unknown moved more than ``k`` σ of the previous state, process noise
+  included) and names each **structural misfit** (an object whose points no longer fit its
+  shape, :class:`mbcal.range.fit.Misfit`).
+
+Killed at any moment (kill -9), it loses no accepted update and leaves no half-written file:
+a journal line is complete or ignored (a torn last line is cut off on restart), the other files
+are renamed into place, and leftover temporary files are removed.  A restart resumes from the
+journal (the snapshot is checked against it).
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import json
+import os
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mbcal.errors import MbcalError, OutputError
+from mbcal.export.mdl import write_calibrated_model
+from mbcal.language.load import load_model
+from mbcal.language.model import Model
+from mbcal.outputs import atomic_write
+from mbcal.range.fit import FitOptions, Prior, ScanFit, fit_scans
+from mbcal.range.readers import CLOUD_SUFFIXES, DEPTH_SUFFIXES, write_ply
+from mbcal.range.scans import Scan, load_scan
+
+__all__ = ["ModelManager", "Update", "fit_files", "SCAN_SUFFIXES"]
+
+SCAN_SUFFIXES = tuple(dict.fromkeys(CLOUD_SUFFIXES + DEPTH_SUFFIXES))
+
+
+@dataclass
+class Update:
+    """One update of the manager: the fit, whether it was accepted, drifts and misfits."""
+
+    seq: int
+    time: float
+    values: dict[str, float]
+    std: dict[str, float]
+    chi2: float
+    reduced_chi2: float
+    points: int
+    outliers: int
+    accepted: bool
+    drift: list[str] = field(default_factory=list)
+    misfits: list[str] = field(default_factory=list)
+    files: list[str] = field(default_factory=list)
+    mean: list[float] = field(default_factory=list)
+    information: list[list[float]] = field(default_factory=list)
+    elapsed: float = 0.0
+
+    def to_json(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+    @staticmethod
+    def from_json(d: Mapping[str, Any]) -> Update:
+        return Update(**{k: d[k] for k in Update.__dataclass_fields__ if k in d})
+
+
+def _outputs(fit: ScanFit, model: Model, out: Path, stem: str, note: Sequence[str]) -> list[Path]:
+    """The calibrated model, the outliers PLY and the report JSON, each written atomically."""
+    written = []
+    mdl = out / f"{stem}.calibrated.mdl"
+    write_calibrated_model(model, fit.values, mdl, std=fit.std, note=list(note))
+    written.append(mdl)
+    ply = out / f"{stem}.outliers.ply"
+    write_ply(ply, fit.outlier_points, np.tile(np.array([[230, 40, 40]], dtype=np.uint8), (fit.n_outliers, 1)))
+    written.append(ply)
+    rep = out / f"{stem}.fit.json"
+    atomic_write(rep, json.dumps(fit.to_json(), indent=2) + "\n")
+    written.append(rep)
+    return written
+
+
+def _check_out_dir(out: Path, inputs: Sequence[str | os.PathLike]) -> None:
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"{out} is a file; --out needs a folder")
+    out.mkdir(parents=True, exist_ok=True)
+    resolved = {Path(i).resolve() for i in inputs}
+    for p in out.iterdir():
+        if p.resolve() in resolved:
+            raise OutputError(f"--out {out} holds the input {p}; choose another folder (inputs are never overwritten)")
+
+
+def fit_files(
+    model_path: str | os.PathLike,
+    scan_paths: Sequence[str | os.PathLike],
+    estimate: Sequence[str],
+    options: FitOptions | None = None,
+    *,
+    out: str | os.PathLike | None = None,
+    sensor: str | None = None,
+    frame: str | None = None,
+    sigma: float | None = None,
+) -> tuple[ScanFit, list[Path]]:
+    """``mbcal fit``: read the model and scans, fit, and write the outputs into ``out``."""
+    model = load_model(model_path)
+    scans = [load_scan(p, model, sensor=sensor, frame=frame, sigma=sigma) for p in scan_paths]
+    if out is not None:
+        _check_out_dir(Path(out), [model_path, *scan_paths, *model.files])
+    fit = fit_scans(model, scans, estimate, options)
+    written: list[Path] = []
+    if out is not None:
+        note = [f"estimated by 'mbcal fit' from {', '.join(str(p) for p in scan_paths)}"]
+        written = _outputs(fit, model, Path(out), Path(model_path).stem, note)
+    return fit, written
+
+
+class ModelManager:
+    """Keeps a model calibrated from a stream of scans (see the module doc).
+
+    Parameters
+    ----------
+    model_path : path
+        The input model (never written).
+    out : path
+        Folder of the journal, the snapshot and the calibrated model.
+    estimate : sequence of str
+        Names or glob patterns of the unknowns.
+    options : FitOptions, optional
+    drift_k : float
+        A drift is flagged when an unknown moves more than this many σ of the previous state.
+    process_noise : mapping, optional
+        Glob pattern → σ (SI) of the change expected per update (a lever that moves, a slowly
+        sagging shelf); added to the prior's covariance before each update.
+    sensor, frame, sigma
+        How scan files are read (see :func:`mbcal.range.scans.load_scan`).
+    """
+
+    JOURNAL = "history.jsonl"
+    SNAPSHOT = "state.json"
+
+    def __init__(
+        self,
+        model_path: str | os.PathLike,
+        out: str | os.PathLike,
+        estimate: Sequence[str],
+        options: FitOptions | None = None,
+        *,
+        drift_k: float = 3.0,
+        process_noise: Mapping[str, float] | None = None,
+        sensor: str | None = None,
+        frame: str | None = None,
+        sigma: float | None = None,
+    ):
+        self.model_path = Path(model_path)
+        self.model = load_model(model_path)
+        self.out = Path(out)
+        _check_out_dir(self.out, [self.model_path, *self.model.files])
+        self.estimate = list(estimate)
+        self.options = options or FitOptions()
+        self.drift_k = drift_k
+        self.process_noise = dict(process_noise or {})
+        self.sensor, self.frame, self.sigma = sensor, frame, sigma
+        self.history: list[Update] = []
+        self.prior: Prior | None = None
+        self._resume()
+
+    # ---- persistence ----------------------------------------------------------------------------------
+
+    @property
+    def journal(self) -> Path:
+        return self.out / self.JOURNAL
+
+    @property
+    def model_out(self) -> Path:
+        return self.out / f"{self.model_path.stem}.calibrated.mdl"
+
+    def _resume(self) -> None:
+        for stale in self.out.glob(".*.part"):  # temporary files of a write cut short by a kill
+            stale.unlink(missing_ok=True)
+        if not self.journal.exists():
+            return
+        raw = self.journal.read_bytes()
+        good = raw.rfind(b"\n") + 1
+        if good < len(raw):  # a torn last line (killed mid-append): not committed, cut it off
+            with open(self.journal, "r+b") as f:
+                f.truncate(good)
+                f.flush()
+                os.fsync(f.fileno())
+        for k, line in enumerate(raw[:good].decode("utf-8").splitlines(), start=1):
+            if not line.strip():
+                continue
+            try:
+                self.history.append(Update.from_json(json.loads(line)))
+            except (ValueError, TypeError) as err:
+                raise MbcalError(f"{self.journal}:{k}: not a journal entry ({err})") from None
+        last = self.last_accepted
+        if last is not None:
+            self.prior = Prior(tuple(last.values), np.asarray(last.mean), np.asarray(last.information))
+            self._write_state(last)
+
+    @property
+    def last_accepted(self) -> Update | None:
+        for u in reversed(self.history):
+            if u.accepted:
+                return u
+        return None
+
+    def _append(self, update: Update) -> None:
+        line = (json.dumps(update.to_json()) + "\n").encode("utf-8")
+        fd = os.open(self.journal, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+        try:
+            os.write(fd, line)
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+    def _write_state(self, u: Update) -> None:
+        snap = {"seq": u.seq, "values": u.values, "std": u.std, "mean": u.mean, "information": u.information}
+        atomic_write(self.out / self.SNAPSHOT, json.dumps(snap) + "\n")
+        stamp = time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(u.time))
+        note = [f"kept by the model manager: update {u.seq} of {stamp} UTC"]
+        write_calibrated_model(self.model, u.values, self.model_out, std=u.std, note=note)
+
+    # ---- updates ---------------------------------------------------------------------------------------
+
+    @property
+    def processed(self) -> set[str]:
+        return {f for u in self.history for f in u.files}
+
+    def _widened_prior(self) -> Prior | None:
+        """The previous posterior with the process noise added to its covariance."""
+        if self.prior is None or not self.process_noise:
+            return self.prior
+        names = list(self.prior.names)
+        q = np.zeros(len(names))
+        for pattern, s in self.process_noise.items():
+            for j, n in enumerate(names):
+                if fnmatch.fnmatchcase(n, pattern):
+                    q[j] = float(s)
+        Lam = np.asarray(self.prior.information)
+        cov = np.linalg.pinv(Lam) + np.diag(q**2)
+        return Prior(self.prior.names, self.prior.mean, np.linalg.inv(cov))
+
+    def update(self, scans: Sequence[Scan], files: Sequence[str] = ()) -> Update:
+        """Fit one batch, record it, and (when accepted) write the state and the calibrated model."""
+        prior = self._widened_prior()
+        last = self.last_accepted
+        initial = dict(last.values) if last is not None else None
+        fit = fit_scans(self.model, scans, self.estimate, self.options, initial=initial, prior=prior)
+        std = fit.std
+        drift = []
+        if last is not None and prior is not None:
+            prev_sd = np.sqrt(np.clip(np.diag(np.linalg.pinv(np.asarray(prior.information))), 0, None))
+            for j, n in enumerate(prior.names):
+                if n in fit.values and prev_sd[j] > 0:
+                    moved = abs(fit.values[n] - last.values[n])
+                    if moved > self.drift_k * prev_sd[j]:
+                        drift.append(f"{n} moved {moved / prev_sd[j]:.1f}σ since update {last.seq}")
+        accepted = fit.converged and not fit.unobservable and fit.near_outlier_fraction < 0.5
+        u = Update(
+            seq=len(self.history) + 1,
+            time=time.time(),
+            values=fit.values,
+            std=std,
+            chi2=fit.chi2,
+            reduced_chi2=fit.reduced_chi2,
+            points=len(fit.points),
+            outliers=fit.n_outliers,
+            accepted=bool(accepted),
+            drift=drift,
+            misfits=[m.message(fit.outlier_sigma, float(np.median(fit.sigma))) for m in fit.structural],
+            files=[str(f) for f in files],
+            mean=[float(v) for v in fit.x],
+            information=np.asarray(fit.information).tolist(),
+            elapsed=fit.elapsed,
+        )
+        self._append(u)  # the commit point
+        self.history.append(u)
+        if accepted:
+            self.prior = fit.prior()
+            self._write_state(u)
+        return u
+
+    def update_files(self, paths: Sequence[str | os.PathLike]) -> Update:
+        scans = [load_scan(p, self.model, sensor=self.sensor, frame=self.frame, sigma=self.sigma) for p in paths]
+        return self.update(scans, [str(Path(p).resolve()) for p in paths])
+
+    def watch(
+        self,
+        folder: str | os.PathLike,
+        *,
+        poll: float = 1.0,
+        once: bool = False,
+        settle: float = 0.5,
+        report: Callable[[Update], None] | None = None,
+        max_updates: int | None = None,
+    ) -> int:
+        """Process scan files appearing in ``folder`` (oldest name first), one update per file.
+
+        ``once``: process what is there and return; otherwise poll every ``poll`` s until
+        interrupted.  A file is taken when its size has not changed for ``settle`` s.  Returns
+        the number of updates made.
+        """
+        src = Path(folder)
+        if not src.is_dir():
+            raise MbcalError(f"{src}: not a folder (--scans needs a folder of scan files)")
+        done = self.processed
+        count = 0
+        sizes: dict[Path, tuple[int, float]] = {}
+        while True:
+            for p in sorted(src.iterdir()):
+                if p.suffix.lower() not in SCAN_SUFFIXES or p.name.startswith(".") or str(p.resolve()) in done:
+                    continue
+                size = p.stat().st_size
+                seen = sizes.get(p)
+                now = time.monotonic()
+                if not once and (seen is None or seen[0] != size or now - seen[1] < settle):
+                    if seen is None or seen[0] != size:
+                        sizes[p] = (size, now)
+                    continue
+                u = self.update_files([p])
+                done.add(str(p.resolve()))
+                count += 1
+                if report is not None:
+                    report(u)
+                if max_updates is not None and count >= max_updates:
+                    return count
+            if once:
+                return count
+            time.sleep(poll)

@@ -1,0 +1,786 @@
+"""Marquardt's method for many configurations: the Schur complement (issue 15).
+
+Many calibration problems are *block-arrow* shaped: configurations (board poses, 3-D points of a
+bundle adjustment) each own a small block of unknowns that no other configuration touches, and
+all share a few unknowns (intrinsics, cameras).  Every residual row depends on one block and on
+one *group* of the shared unknowns.  The normal matrix is then
+
+    A = [ U  W ]      U = diag(U_1 … U_B), U_b = J_bᵀ J_b (small: nb × nb)
+        [ Wᵀ V ]      V = diag(V_1 … V_G), V_g = J_gᵀ J_g (ks × ks), W the coupling.
+
+Each Marquardt step solves (A + λ·diag(D)) δ = −g by eliminating the blocks: with
+Ũ_b = U_b + λ D_b (inverted block by block, vmapped), the reduced system over the shared unknowns
+is S δ_s = −g_s + Wᵀ Ũ⁻¹ g_b with S = Ṽ − Wᵀ Ũ⁻¹ W (dense, ns × ns), and δ_b = −Ũ_b⁻¹ (g_b + W_b δ_s)
+(Triggs et al., *Bundle adjustment — a modern synthesis*, 2000, section 6.1).  D is Marquardt's
+scaling exactly as in :mod:`mbcal.solver` (the running maximum of diag(JᵀJ), floored at 1e-12 of
+its largest entry), λ follows the same gain-ratio rule, the same tests stop it: on a small
+problem the iterates agree with the dense solver to round-off.
+
+The Jacobian is never formed column by column: because row i depends only on its own block and
+group, one forward-mode pass with nb + ks tangents — each block's k-th unknown moved together,
+each group's k-th unknown moved together — gives every row's derivatives (a *compressed*
+Jacobian, m × (nb + ks), as in Curtis, Powell & Reid's column grouping).  Cost per iteration is
+linear in the number of blocks; the largest matrix is ns × ns.
+
+The low-level entry point :func:`least_squares_structured` takes any residual function with the
+structure stated explicitly (:class:`Structure`), so problems written outside the model language
+— bundle adjustment — use it too (``bench/scale.py`` solves BAL files with it);
+:func:`structure_of` finds the structure of a :class:`mbcal.problem.Problem` built from a model
+(each configuration's own unknowns, e.g. ``board.roll@view17``, form its block).
+
+After the solve, :func:`analyze_structured` gives the covariance of the shared unknowns from the
+reduced system, the marginal covariance of any block on request, and the unobservable directions
+by name — within a block from that block alone, across the shared unknowns from the reduced
+system — without ever forming the full n × n matrix.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from mbcal._jax import jax, jnp, to_device
+from mbcal.cache import Hasher, exported
+from mbcal.datasets.bal import BalProblem
+from mbcal.errors import SolverError
+from mbcal.problem import Problem
+from mbcal.solver import (
+    LeastSquaresResult,
+    LocalParameterisation,
+    SolverConfig,
+    Status,
+    _Identity,
+    _solve_spd,
+    marquardt_trial,
+    robust,
+    step_status,
+)
+
+Array = Any
+
+__all__ = [
+    "Structure",
+    "StructuredAnalysis",
+    "least_squares_structured",
+    "structure_of",
+    "analyze_structured",
+    "pays",
+    "bal_structure",
+    "STRUCTURED_MIN_BLOCKS",
+    "DENSE_ANALYSIS_ENTRIES",
+    "dense_jacobian",
+    "square_root_information",
+    "compressed_jacobian",
+    "check_structure",
+]
+
+STRUCTURED_MIN_BLOCKS = 8
+"""``structure="auto"`` uses the Schur complement when a problem has a block structure with at
+least this many blocks and its blocks hold most of the unknowns (see :func:`pays`)."""
+
+
+@dataclass(frozen=True, eq=False)
+class Structure:
+    """Which unknowns each residual row depends on.
+
+    Attributes
+    ----------
+    blocks : (B, nb) int
+        Positions in x of each block's unknowns (a configuration's own unknowns).
+    shared : (G, ks) int
+        Positions in x of each group of shared unknowns (G = 1 when every row may depend on all
+        of them; a bundle adjustment has one group per camera).
+    row_block : (m,) int
+        The block each residual row depends on (any block for a row that depends on no block's
+        unknowns, such as a prior on a shared unknown: its derivatives there are zero).
+    row_group : (m,) int
+        The group of shared unknowns each row depends on.
+    names : sequence of str, optional
+        Names of the unknowns (n), for the analysis.
+
+    Every unknown must be in exactly one block or group.  Compared by identity (the compiled
+    program is cached per structure object: keep it between calls).
+    """
+
+    blocks: np.ndarray
+    shared: np.ndarray
+    row_block: np.ndarray
+    row_group: np.ndarray
+    names: Sequence[str] | None = None
+    _derived: dict = field(default_factory=dict, repr=False)
+
+    def __post_init__(self) -> None:
+        blocks = np.asarray(self.blocks, dtype=np.int64)
+        shared = np.asarray(self.shared, dtype=np.int64)
+        row_block = np.asarray(self.row_block, dtype=np.int64).ravel()
+        row_group = np.asarray(self.row_group, dtype=np.int64).ravel()
+        if blocks.ndim != 2 or shared.ndim != 2 or blocks.shape[1] < 1 or shared.shape[1] < 1:
+            raise SolverError("a structure needs blocks (B, nb) and shared groups (G, ks), each with nb, ks ≥ 1")
+        if row_block.shape != row_group.shape:
+            raise SolverError("row_block and row_group must give one block and one group per residual row")
+        n = blocks.size + shared.size
+        every = np.concatenate([blocks.ravel(), shared.ravel()])
+        if np.any(np.sort(every) != np.arange(n)):
+            raise SolverError(f"every unknown 0 … {n - 1} must be in exactly one block or shared group")
+        if row_block.size and (row_block.min() < 0 or row_block.max() >= len(blocks)):
+            raise SolverError(f"row_block must name blocks 0 … {len(blocks) - 1}")
+        if row_group.size and (row_group.min() < 0 or row_group.max() >= len(shared)):
+            raise SolverError(f"row_group must name shared groups 0 … {len(shared) - 1}")
+        for name, value in (("blocks", blocks), ("shared", shared), ("row_block", row_block), ("row_group", row_group)):
+            object.__setattr__(self, name, value)
+
+    # ---- sizes ------------------------------------------------------------------------------------
+
+    @property
+    def n(self) -> int:
+        return int(self.blocks.size + self.shared.size)
+
+    @property
+    def m(self) -> int:
+        return int(self.row_block.size)
+
+    @property
+    def nb(self) -> int:
+        return int(self.blocks.shape[1])
+
+    @property
+    def ks(self) -> int:
+        return int(self.shared.shape[1])
+
+    @property
+    def n_blocks(self) -> int:
+        return int(self.blocks.shape[0])
+
+    @property
+    def n_groups(self) -> int:
+        return int(self.shared.shape[0])
+
+    # ---- index arrays the compiled program uses ---------------------------------------------------
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Host-side index arrays (computed once): the compressed column of each unknown, the
+        (block, group) pairs that rows couple, and the pairs of pairs within one block."""
+        if self._derived:
+            return self._derived
+        nb, ks, B, G = self.nb, self.ks, self.n_blocks, self.n_groups
+        slot = np.zeros(self.n, dtype=np.int64)
+        slot[self.blocks] = np.arange(nb)[None, :]
+        slot[self.shared] = nb + np.arange(ks)[None, :]
+        key = self.row_block * G + self.row_group
+        pairs, row_pair = np.unique(key, return_inverse=True)
+        pair_block, pair_group = pairs // G, pairs % G
+        # Pairs of pairs (p, q), p < q, within one block: S gets W_pᵀ Ũ_b⁻¹ W_q at groups (g_p, g_q)
+        # and its transpose at (g_q, g_p); the pairs p = q are S's diagonal terms (symmetry halves
+        # the work).
+        order = np.argsort(pair_block, kind="stable")
+        counts = np.bincount(pair_block, minlength=B)
+        starts = np.concatenate([[0], np.cumsum(counts)])
+        pa, pb = [], []
+        for b in np.nonzero(counts > 1)[0]:
+            members = order[starts[b] : starts[b + 1]]
+            i, j = np.triu_indices(len(members), k=1)
+            pa.append(members[i])
+            pb.append(members[j])
+        pp_a = np.concatenate(pa) if pa else np.zeros(0, dtype=np.int64)
+        pp_b = np.concatenate(pb) if pb else np.zeros(0, dtype=np.int64)
+        # Each pair's rows in a padded table (P, L) (index m: a zero row), so that the normal
+        # equations are batched products, not scatters of every row; when padding would more than
+        # double the rows, the rows are scattered instead.
+        P, m = len(pairs), self.m
+        per_pair = np.bincount(row_pair, minlength=P)
+        L = int(per_pair.max()) if m else 1
+        padded = P * L <= 2 * m + 64
+        pair_rows = np.full((P, L if padded else 1), m, dtype=np.int64)
+        if padded:
+            by_pair = np.argsort(row_pair, kind="stable")
+            first = np.concatenate([[0], np.cumsum(per_pair)])[:-1]
+            pair_rows[row_pair[by_pair], np.arange(m) - first[row_pair[by_pair]]] = by_pair
+        self._derived.update(
+            padded=padded,
+            pair_rows=pair_rows,
+            slot=slot,
+            row_block=self.row_block,
+            row_group=self.row_group,
+            row_pair=row_pair.astype(np.int64),
+            pair_block=pair_block.astype(np.int64),
+            pair_group=pair_group.astype(np.int64),
+            pp_a=pp_a.astype(np.int64),
+            pp_b=pp_b.astype(np.int64),
+            pp_target=(pair_group[pp_a] * G + pair_group[pp_b]).astype(np.int64),
+            blocks=self.blocks,
+            shared=self.shared,
+        )
+        return self._derived
+
+    def block_of_unknown(self) -> tuple[np.ndarray, np.ndarray]:
+        """(n,) the block of each unknown (−1: shared) and (n,) its group (−1: in a block)."""
+        block = np.full(self.n, -1, dtype=np.int64)
+        group = np.full(self.n, -1, dtype=np.int64)
+        block[self.blocks] = np.arange(self.n_blocks)[:, None]
+        group[self.shared] = np.arange(self.n_groups)[:, None]
+        return block, group
+
+
+class _Arrays(NamedTuple):
+    slot: Array
+    row_block: Array
+    row_group: Array
+    row_pair: Array
+    pair_block: Array
+    pair_group: Array
+    pp_a: Array
+    pp_b: Array
+    pp_target: Array
+    blocks: Array
+    shared: Array
+    pair_rows: Array
+
+
+def _inverse_spd(M: Array) -> Array:
+    """Inverse of a small symmetric positive definite matrix (NaN when it is not)."""
+    n = M.shape[0]
+    return jax.vmap(lambda e: _solve_spd(M, e))(jnp.eye(n))
+
+
+class _Normal(NamedTuple):
+    """The pieces of the normal equations at a point (weighted by the robust loss)."""
+
+    U: Array  # (B, nb, nb)
+    V: Array  # (G, ks, ks)
+    W: Array  # (P, nb, ks)
+    gb: Array  # (B, nb)
+    gs: Array  # (G, ks)
+
+
+def _normal(Jw: Array, rw: Array, ix: _Arrays, B: int, G: int, P: int, nb: int, padded: bool) -> _Normal:
+    seg = jax.ops.segment_sum
+    if padded:  # each pair's rows gathered: U_p, W_p, V_p and g_p as batched products
+        c = Jw.shape[1]
+        Jp = jnp.concatenate([Jw, jnp.zeros((1, c))])[ix.pair_rows]  # (P, L, c)
+        rp = jnp.concatenate([rw, jnp.zeros(1)])[ix.pair_rows]
+        A = jnp.einsum("pli,plj->pij", Jp, Jp)
+        g = jnp.einsum("pli,pl->pi", Jp, rp)
+        U = seg(A[:, :nb, :nb], ix.pair_block, B)
+        gb = seg(g[:, :nb], ix.pair_block, B)
+        if G == 1:
+            return _Normal(
+                U, jnp.sum(A[:, nb:, nb:], axis=0)[None], A[:, :nb, nb:], gb, jnp.sum(g[:, nb:], axis=0)[None]
+            )
+        V = seg(A[:, nb:, nb:], ix.pair_group, G)
+        return _Normal(U, V, A[:, :nb, nb:], gb, seg(g[:, nb:], ix.pair_group, G))
+    Jb, Js = Jw[:, :nb], Jw[:, nb:]
+    U = seg(Jb[:, :, None] * Jb[:, None, :], ix.row_block, B)
+    W = seg(Jb[:, :, None] * Js[:, None, :], ix.row_pair, P)
+    gb = seg(Jb * rw[:, None], ix.row_block, B)
+    if G == 1:  # one group (a camera's intrinsics): products, not a scatter into one segment
+        return _Normal(U, (Js.T @ Js)[None], W, gb, (Js.T @ rw)[None])
+    V = seg(Js[:, :, None] * Js[:, None, :], ix.row_group, G)
+    gs = seg(Js * rw[:, None], ix.row_group, G)
+    return _Normal(U, V, W, gb, gs)
+
+
+def _reduced(Ui: Array, Vd: Array, W: Array, ix: _Arrays, G: int) -> Array:
+    """S = Ṽ − Wᵀ Ũ⁻¹ W as a dense (G·ks, G·ks) matrix, from the block inverses Ũ⁻¹ (B, nb, nb)."""
+    ks = Vd.shape[-1]
+    Y = jnp.einsum("pij,pjk->pik", Ui[ix.pair_block], W)  # Ũ_b⁻¹ W_p
+    diagonal = jax.ops.segment_sum(jnp.einsum("pij,pik->pjk", W, Y), ix.pair_group, G)  # W_pᵀ Ũ_b⁻¹ W_p
+    contrib = jnp.einsum("qij,qik->qjk", W[ix.pp_a], Y[ix.pp_b])  # W_pᵀ Ũ_b⁻¹ W_q, p < q
+    off = jax.ops.segment_sum(contrib, ix.pp_target, G * G).reshape(G, G, ks, ks)
+    off = off + off.transpose(1, 0, 3, 2)
+    full = off.at[jnp.arange(G), jnp.arange(G)].add(diagonal - Vd)
+    return -full.transpose(0, 2, 1, 3).reshape(G * ks, G * ks)
+
+
+class _State(NamedTuple):
+    x: Array
+    r: Array
+    rw: Array
+    Jw: Array  # (m, nb + ks) compressed, weighted
+    cost: Array
+    x_try: Array
+    predicted: Array
+    lam: Array
+    nu: Array
+    Db: Array  # (B, nb)
+    Ds: Array  # (G, ks)
+    it: Array
+    status: Array
+
+
+def _lm_structured(
+    fun: Callable,
+    config: SolverConfig,
+    x0: Array,
+    args: tuple,
+    ix: _Arrays,
+    sizes: tuple[int, int, int, int, int, bool],
+    local: LocalParameterisation | None,
+) -> tuple:
+    """The Schur-complement Marquardt loop from one start: (x, cost, status, iterations)."""
+    m, B, G, P, nb, padded = sizes
+    loss, scale = config.loss, config.loss_scale
+    assert scale is not None
+    n = x0.shape[0]
+    ks = ix.shared.shape[1]
+    c = nb + ks
+
+    def expand(dc):
+        return dc[ix.slot]
+
+    if local is None:
+
+        def evaluate(x):
+            return jax.jacfwd(lambda dc: (lambda r: (r, r))(fun(x + expand(dc), *args)), has_aux=True)(jnp.zeros(c))
+
+    else:
+
+        def evaluate(x):
+            return jax.jacfwd(lambda dc: (lambda r: (r, r))(local.residual(x, expand(dc), *args)), has_aux=True)(
+                jnp.zeros(c)
+            )
+
+    def weighted(r, J):
+        s = r * r
+        rho, drho = robust(loss, scale, s)
+        w = jnp.sqrt(drho)
+        return jnp.sum(rho), w * r, w[:, None] * J
+
+    def gradient_small(rw, N):
+        # ‖J_j‖² is the diagonal of JᵀJ: of U for block unknowns, of V for shared ones.
+        colb = jnp.sqrt(jnp.diagonal(N.U, axis1=1, axis2=2))
+        cols = jnp.sqrt(jnp.diagonal(N.V, axis1=1, axis2=2))
+        gb, gs = N.gb, N.gs
+        rn = jnp.sqrt(jnp.sum(rw * rw))
+
+        def cosine(g, col):
+            denom = col * rn
+            return jnp.max(jnp.where(denom > 0, jnp.abs(g) / jnp.where(denom > 0, denom, 1.0), 0.0), initial=0.0)
+
+        return jnp.maximum(cosine(gb, colb), cosine(gs, cols)) <= config.gtol
+
+    state0 = _State(
+        x=x0,
+        r=jnp.zeros(m),
+        rw=jnp.zeros(m),
+        Jw=jnp.zeros((m, c)),
+        cost=jnp.asarray(jnp.inf),
+        x_try=x0,
+        predicted=jnp.asarray(0.0),
+        lam=jnp.asarray(config.lambda_init),
+        nu=jnp.asarray(2.0),
+        Db=jnp.zeros((B, nb)),
+        Ds=jnp.zeros((G, ks)),
+        it=jnp.int32(0),
+        status=jnp.int32(0),
+    )
+
+    def body(state: _State) -> _State:
+        x, r, rw, Jw, cost, x_try, predicted, lam, nu, Db, Ds, it, status = state
+        trial = marquardt_trial(evaluate, weighted, loss, scale, state)
+        first, ok, accept, actual = trial.first, trial.ok, trial.accept, trial.actual
+        x, r, rw, Jw, cost, lam, nu = trial.x, trial.r, trial.rw, trial.Jw, trial.cost, trial.lam, trial.nu
+        it = it + 1
+        Jb, Js = Jw[:, :nb], Jw[:, nb:]
+        N = _normal(Jw, rw, ix, B, G, P, nb, padded)
+        status = jnp.where(first & ~ok, Status.NON_FINITE, 0)
+        tiny = (actual <= config.ftol * cost) & (predicted <= config.ftol * cost)
+        status = jnp.where((status == 0) & accept & ~first & tiny, Status.CONVERGED_COST, status)
+        status = jnp.where((status == 0) & accept & (cost == 0), Status.CONVERGED_COST, status)
+        status = jnp.where((status == 0) & accept & gradient_small(rw, N), Status.CONVERGED_GRADIENT, status)
+        # Marquardt's scaling, as the dense solver: running maximum of diag(JᵀJ), floored.
+        Db = jnp.maximum(Db, jnp.diagonal(N.U, axis1=1, axis2=2))
+        Ds = jnp.maximum(Ds, jnp.diagonal(N.V, axis1=1, axis2=2))
+        floor = 1e-12 * jnp.maximum(jnp.maximum(jnp.max(Db), jnp.max(Ds)), 1e-300)
+        Dcb, Dcs = jnp.maximum(Db, floor), jnp.maximum(Ds, floor)
+        Ud = N.U + lam * jax.vmap(jnp.diag)(Dcb)
+        Vd = N.V + lam * jax.vmap(jnp.diag)(Dcs)
+        Ui = jax.vmap(_inverse_spd)(Ud)  # (B, nb, nb)
+        S = _reduced(Ui, Vd, N.W, ix, G)
+        ub = jnp.einsum("bij,bj->bi", Ui, N.gb)  # Ũ⁻¹ g_b
+        rhs = -N.gs + jax.ops.segment_sum(jnp.einsum("pij,pi->pj", N.W, ub[ix.pair_block]), ix.pair_group, G)
+        ds = _solve_spd(S, rhs.reshape(-1)).reshape(G, ks)  # Cholesky (unrolled up to 16 unknowns)
+        Wds = jax.ops.segment_sum(jnp.einsum("pij,pj->pi", N.W, ds[ix.pair_group]), ix.pair_block, B)
+        db = -jnp.einsum("bij,bj->bi", Ui, N.gb + Wds)
+        finite_step = jnp.all(jnp.isfinite(db)) & jnp.all(jnp.isfinite(ds))
+        db = jnp.where(finite_step, db, 0.0)
+        ds = jnp.where(finite_step, ds, 0.0)
+        delta = jnp.zeros(n).at[ix.blocks].set(db).at[ix.shared].set(ds)
+        # The linear model's decrease: −(2 gᵀδ + ‖J δ‖²).
+        Jd = jnp.sum(Jb * db[ix.row_block], axis=1) + jnp.sum(Js * ds[ix.row_group], axis=1)
+        gd = jnp.sum(N.gb * db) + jnp.sum(N.gs * ds)
+        predicted = jnp.where(finite_step, -(2.0 * gd + jnp.sum(Jd * Jd)), -1.0)
+        status = step_status(config, status, finite_step, delta, x, lam, it)
+        x_next = x + delta if local is None else local.plus(x, delta)
+        x_try = jnp.where(finite_step, x_next, x)
+        return _State(x, r, rw, Jw, cost, x_try, predicted, lam, nu, Db, Ds, it, status.astype(jnp.int32))
+
+    final = jax.lax.while_loop(lambda s: s.status == 0, body, state0)
+    cost = jnp.where(final.status == Status.NON_FINITE, jnp.inf, weighted(final.r, jnp.zeros((m, 1)))[0])
+    x = final.x if local is None else local.represent(final.x, x0)
+    return x, cost, final.status, final.it
+
+
+# Few programs, as in mbcal.solver: each compiled program holds hundreds of XLA's memory maps, and a
+# long process that kept dozens alive came near the kernel's limit, where XLA:CPU crashes (issue 16).
+@functools.lru_cache(maxsize=8)
+def _compiled(fun: Callable, config: SolverConfig, sizes: tuple[int, ...], wrapped: _Identity | None) -> Callable:
+    local = None if wrapped is None else wrapped.obj
+
+    def batch(x0s, args, ix):
+        return jax.vmap(lambda x0: _lm_structured(fun, config, x0, args, _Arrays(*ix), sizes, local))(x0s)  # type: ignore[arg-type]
+
+    return jax.jit(batch)
+
+
+def least_squares_structured(
+    fun: Callable[..., Array],
+    x0: Array,
+    structure: Structure,
+    *,
+    args: tuple = (),
+    config: SolverConfig | None = None,
+    local: LocalParameterisation | None = None,
+    cache_key: str | None = None,
+) -> LeastSquaresResult:
+    """Minimise ``Σ ρ(r_i²)`` for ``r = fun(x, *args)`` by Schur-complement Marquardt steps.
+
+    The same contract as :func:`mbcal.solver.least_squares` (one start or a batch of restarts,
+    the same :class:`~mbcal.solver.SolverConfig`, statuses and result), plus the ``structure``:
+    row i of ``fun`` must depend only on the unknowns of block ``structure.row_block[i]`` and of
+    shared group ``structure.row_group[i]`` (a row that broke the promise would get a wrong
+    Jacobian: :func:`check_structure` tests it on a small problem).  Hard bounds are not
+    supported here (use the dense solver).  ``cache_key``: as for the dense solver, a fingerprint
+    of everything ``fun`` (and ``local``) depends on besides ``args``: the traced program is saved
+    and a later process reuses it without tracing (issue 16).
+    """
+    config = config or SolverConfig()
+    x0 = np.atleast_2d(np.asarray(x0, dtype=float))
+    if x0.shape[1] != structure.n:
+        raise SolverError(f"x0 has {x0.shape[1]} unknowns; the structure names {structure.n}")
+    args = tuple(to_device(a) for a in args)  # not jnp.asarray: it compiles a program per shape (issue 16)
+    local = local if config.manifold else None
+    ix = structure.arrays()
+    sizes = (structure.m, structure.n_blocks, structure.n_groups, len(ix["pair_block"]), structure.nb, ix["padded"])
+    program = _compiled(fun, config, sizes, None if local is None else _Identity(local))
+    arrays = tuple(to_device(ix[name]) for name in _Arrays._fields)
+    example = (to_device(x0), args, arrays)
+    if cache_key is not None:  # the structure's index arrays are arguments: only their shapes enter
+        key = Hasher().add("structured", cache_key, repr(config), sizes, x0.shape)
+        key.add([(a.shape, str(a.dtype)) for a in args], [(a.shape, str(a.dtype)) for a in arrays])
+        if local is not None:
+            key.add("local", type(local).__module__, type(local).__qualname__)
+        program = exported(key.hexdigest(), program, *example)
+    out = program(*example)
+    x, cost, status, it = (np.asarray(v) for v in out)
+    finite = np.isfinite(cost)
+    best = int(np.argmin(np.where(finite, cost, np.inf))) if finite.any() else -1
+    return LeastSquaresResult(x=x, x0=x0, cost=cost, status=status, iterations=it, best=best, config=config)
+
+
+@functools.lru_cache(maxsize=8)
+def _compressed_program(fun: Callable, c: int, wrapped: _Identity | None) -> Callable:
+    local = None if wrapped is None else wrapped.obj
+
+    def jac(x, slot, args):
+        def f(dc):
+            r = fun(x + dc[slot], *args) if local is None else local.residual(x, dc[slot], *args)
+            return r, r
+
+        return jax.jacfwd(f, has_aux=True)(jnp.zeros(c))
+
+    return jax.jit(jac)
+
+
+def compressed_jacobian(
+    fun: Callable[..., Array],
+    x: Array,
+    structure: Structure,
+    args: tuple = (),
+    local: LocalParameterisation | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(r, Jc): the residual at x and its compressed Jacobian (m, nb + ks): row i's derivatives
+    with respect to its own block's unknowns (first nb columns) and its group's (last ks)."""
+    program = _compressed_program(fun, structure.nb + structure.ks, None if local is None else _Identity(local))
+    args = tuple(to_device(a) for a in args)
+    J, r = program(to_device(x, float), to_device(structure.arrays()["slot"]), args)
+    return np.asarray(r), np.asarray(J)
+
+
+def check_structure(fun: Callable[..., Array], x: Array, structure: Structure, args: tuple = ()) -> None:
+    """Raise a :class:`SolverError` naming a row that depends on an unknown outside its block and
+    group (compares the full Jacobian's pattern: for small problems and tests only)."""
+    J = np.asarray(jax.jacfwd(lambda z: fun(z, *args))(jnp.asarray(x, dtype=float)))
+    block, group = structure.block_of_unknown()
+    allowed = (block[None, :] == structure.row_block[:, None]) | (group[None, :] == structure.row_group[:, None])
+    bad = np.argwhere((J != 0) & ~allowed)
+    if len(bad):
+        i, j = bad[0]
+        raise SolverError(
+            f"residual row {i} depends on unknown {j}, which is neither in its block "
+            f"{structure.row_block[i]} nor in its shared group {structure.row_group[i]}"
+        )
+
+
+# ---- structure of a model-built problem ----------------------------------------------------------
+
+
+def structure_of(problem: Problem) -> Structure | None:
+    """The block structure of a calibration problem, or None when it has none worth using.
+
+    Each configuration's own unknowns (per-configuration parameters such as ``board.x@view3``)
+    form its block; every other unknown is shared (one group).  Needs the same number of own
+    unknowns in every configuration and at least one shared unknown; a row belongs to the
+    configuration of its measurement (a prior row to the configuration of its unknown).
+    """
+    params = problem.params
+    source = params._source  # (C, n_params): position in x, −1 when known
+    C = source.shape[0]
+    if C < 2:
+        return None
+    own_columns = []
+    shared_positions: list[int] = []
+    for k in range(source.shape[1]):
+        column = source[:, k]
+        if np.all(column < 0):
+            continue
+        if np.all(column == column[0]):
+            shared_positions.append(int(column[0]))
+        elif np.all(column >= 0) and len(np.unique(column)) == C:
+            own_columns.append(column)
+        else:
+            return None  # unknown in some configurations only, or shared by a few
+    if not own_columns or not shared_positions:
+        return None
+    blocks = np.stack(own_columns, axis=1)  # (C, nb)
+    shared = np.array(sorted(set(shared_positions)), dtype=np.int64)[None, :]
+    if blocks.size + shared.size != params.size:
+        return None
+    configs = {name: i for i, name in enumerate(params.configurations)}
+    row_block = np.zeros(problem.n_residuals, dtype=np.int64)
+    measurements = problem.measurements.measurements
+    config_of = np.array([configs[m.config] for m in measurements], dtype=np.int64)
+    row_block[: problem.size] = config_of[problem.row_measurement]
+    block_of = np.full(params.size, -1, dtype=np.int64)
+    block_of[blocks] = np.arange(len(blocks))[:, None]
+    for k, j in enumerate(problem.prior_index):
+        row_block[problem.size + k] = max(block_of[j], 0)
+    names = params.names
+    return Structure(blocks, shared, row_block, np.zeros(problem.n_residuals, dtype=np.int64), names=names)
+
+
+def bal_structure(bal: BalProblem) -> Structure:
+    """The structure of a bundle adjustment (:func:`mbcal.datasets.bal.read_bal`): each point is a
+    block of 3 unknowns, each camera a group of 9 shared ones; observation i gives rows 2i, 2i+1."""
+    C, N = bal.n_cameras, bal.n_points
+    shared = np.arange(9 * C).reshape(C, 9)
+    blocks = 9 * C + np.arange(3 * N).reshape(N, 3)
+    names = [f"camera{c}.{k}" for c in range(C) for k in ("rx", "ry", "rz", "tx", "ty", "tz", "f", "k1", "k2")]
+    names += [f"point{p}.{k}" for p in range(N) for k in "xyz"]
+    return Structure(blocks, shared, np.repeat(bal.point_index, 2), np.repeat(bal.camera_index, 2), names=names)
+
+
+def pays(structure: Structure | None) -> bool:
+    """The rule of ``structure="auto"``: the Schur complement is used when the problem has a
+    block structure with at least :data:`STRUCTURED_MIN_BLOCKS` blocks whose unknowns outnumber
+    the shared ones (then the dense normal matrix, (B·nb + ns)², dwarfs the reduced one, ns²)."""
+    return (
+        structure is not None
+        and structure.n_blocks >= STRUCTURED_MIN_BLOCKS
+        and structure.blocks.size > structure.shared.size
+    )
+
+
+# ---- uncertainty and observability at scale ------------------------------------------------------
+
+
+@dataclass
+class StructuredAnalysis:
+    """Covariance and observability of a block-structured problem at a solution.
+
+    Attributes
+    ----------
+    shared_covariance : (ns, ns)
+        Covariance of the shared unknowns (in the order of ``structure.shared.ravel()``): the
+        inverse of the reduced system S = V − Wᵀ U⁻¹ W (pseudo-inverse where rank deficient).
+    shared_std : (ns,)
+    block_std : (B, nb)
+        σ of every block unknown (the diagonal of each block's marginal covariance).
+    rank : int
+        Rank of the whole Jacobian: each block's own rank plus the reduced system's.
+    unobservable : list of dict
+        One per null direction: ``{"where": "shared" | "block <b>", "combination": {name: weight}}``.
+    """
+
+    structure: Structure
+    shared_covariance: np.ndarray
+    shared_std: np.ndarray
+    block_std: np.ndarray
+    rank: int
+    unobservable: list[dict[str, Any]]
+    _U_pinv: np.ndarray = field(repr=False)
+    _W: np.ndarray = field(repr=False)
+    _scale: float = 1.0
+
+    def block_covariance(self, b: int) -> np.ndarray:
+        """The marginal covariance (nb, nb) of block b's unknowns:
+        U_b⁻¹ + U_b⁻¹ W_b S⁻¹ W_bᵀ U_b⁻¹, with W_b the block's coupling to all shared unknowns."""
+        Ui = self._U_pinv[b]  # both scaled by the same χ² factor c: c·U⁻¹ + (cU⁻¹) W (cS⁻¹) Wᵀ (cU⁻¹) / c²
+        Wb = self._block_coupling(b)
+        c = self._scale
+        return Ui + Ui @ Wb @ self.shared_covariance @ Wb.T @ Ui / (c * c)
+
+    def _block_coupling(self, b: int) -> np.ndarray:
+        ix = self.structure.arrays()
+        G, ks = self.structure.n_groups, self.structure.ks
+        Wb = np.zeros((self.structure.nb, G * ks))
+        for p in np.nonzero(ix["pair_block"] == b)[0]:
+            g = ix["pair_group"][p]
+            Wb[:, g * ks : (g + 1) * ks] += self._W[p]
+        return Wb
+
+    @property
+    def observable(self) -> bool:
+        return not self.unobservable
+
+
+def _pinv_sym(M: np.ndarray, rtol: float) -> tuple[np.ndarray, int, np.ndarray]:
+    """Pseudo-inverse of a symmetric PSD matrix, with its rank and null vectors, judged on the
+    matrix scaled to unit diagonal (so units do not decide the rank)."""
+    d = np.sqrt(np.clip(np.diag(M), 0, None))
+    dn = np.where(d > 0, d, 1.0)
+    Ms = M / dn[:, None] / dn[None, :]
+    w, v = np.linalg.eigh(Ms)
+    top = max(float(w.max()) if w.size else 0.0, 1e-300)
+    keep = w > rtol * top
+    inv_s = (v[:, keep] / w[keep]) @ v[:, keep].T
+    null = v[:, ~keep] / dn[:, None]
+    null = null / np.maximum(np.linalg.norm(null, axis=0), 1e-300)
+    return inv_s / dn[:, None] / dn[None, :], int(keep.sum()), null
+
+
+def analyze_structured(
+    fun: Callable[..., Array],
+    x: Array,
+    structure: Structure,
+    *,
+    args: tuple = (),
+    local: LocalParameterisation | None = None,
+    rtol: float = 1e-10,
+    chi2_scale: float = 1.0,
+) -> StructuredAnalysis:
+    """Covariance and unobservable directions at x without the full n × n matrix.
+
+    A block whose own columns are dependent (a board seen edge-on, a point seen once) is named
+    with its null combination; the shared unknowns' null directions come from the reduced system
+    (built with each block's pseudo-inverse).  ``chi2_scale`` multiplies the covariance.
+    """
+    _, Jc = compressed_jacobian(fun, x, structure, args, local)
+    nb, B, G, ks = structure.nb, structure.n_blocks, structure.n_groups, structure.ks
+    ix = structure.arrays()
+    P = len(ix["pair_block"])
+    Jb, Js = Jc[:, :nb], Jc[:, nb:]
+    U = np.zeros((B, nb, nb))
+    np.add.at(U, structure.row_block, Jb[:, :, None] * Jb[:, None, :])
+    V = np.zeros((G, ks, ks))
+    np.add.at(V, structure.row_group, Js[:, :, None] * Js[:, None, :])
+    W = np.zeros((P, nb, ks))
+    np.add.at(W, ix["row_pair"], Jb[:, :, None] * Js[:, None, :])
+    names = list(structure.names) if structure.names is not None else [f"x[{j}]" for j in range(structure.n)]
+    unobservable: list[dict[str, Any]] = []
+    U_pinv = np.zeros_like(U)
+    rank = 0
+    for b in range(B):
+        inv, rk, null = _pinv_sym(U[b], rtol)
+        U_pinv[b] = inv
+        rank += rk
+        for k in range(null.shape[1]):
+            combo = {names[structure.blocks[b, i]]: float(null[i, k]) for i in range(nb) if abs(null[i, k]) > 1e-6}
+            unobservable.append({"where": f"block {b}", "combination": combo})
+    arrays = _Arrays(*(jnp.asarray(ix[k]) for k in _Arrays._fields))
+    S = np.asarray(_reduced(jnp.asarray(U_pinv), jnp.asarray(V), jnp.asarray(W), arrays, G))
+    S = 0.5 * (S + S.T)
+    S_inv, rk_s, null_s = _pinv_sym(S, rtol)
+    rank += rk_s
+    shared_names = [names[j] for j in structure.shared.ravel()]
+    for k in range(null_s.shape[1]):
+        combo = {shared_names[i]: float(null_s[i, k]) for i in range(len(shared_names)) if abs(null_s[i, k]) > 1e-6}
+        unobservable.append({"where": "shared", "combination": combo})
+    # σ of every block unknown: diag(U⁻¹) + diag(U⁻¹ W_b S⁻¹ W_bᵀ U⁻¹), summed over pairs of pairs.
+    Y = np.einsum("pij,pjk->pik", U_pinv[ix["pair_block"]], W)  # (P, nb, ks): U_b⁻¹ W_p
+    S_blocks = S_inv.reshape(G, ks, G, ks).transpose(0, 2, 1, 3)  # (G, G, ks, ks)
+    gp, gq = ix["pair_group"][ix["pp_a"]], ix["pair_group"][ix["pp_b"]]
+    inner = np.einsum("qik,qkl,qil->qi", Y[ix["pp_a"]], S_blocks[gp, gq], Y[ix["pp_b"]])  # p < q: twice
+    g = ix["pair_group"]
+    own = np.einsum("pik,pkl,pil->pi", Y, S_blocks[g, g], Y)  # p = q
+    block_var = np.einsum("bii->bi", U_pinv).copy()  # einsum gives a view of the diagonal
+    np.add.at(block_var, ix["pair_block"][ix["pp_a"]], 2.0 * inner)
+    np.add.at(block_var, ix["pair_block"], own)
+    return StructuredAnalysis(
+        structure=structure,
+        shared_covariance=S_inv * chi2_scale,
+        shared_std=np.sqrt(np.clip(np.diag(S_inv) * chi2_scale, 0, None)),
+        block_std=np.sqrt(np.clip(block_var * chi2_scale, 0, None)),
+        rank=rank,
+        unobservable=unobservable,
+        _U_pinv=U_pinv * chi2_scale,
+        _W=W,
+        _scale=chi2_scale,
+    )
+
+
+def dense_jacobian(
+    fun: Callable[..., Array],
+    x: Array,
+    structure: Structure,
+    args: tuple = (),
+    local: LocalParameterisation | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(r, J, Jc): the residual, the full m × n Jacobian scattered from the compressed one Jc (one
+    forward pass with nb + ks tangents instead of n), and Jc itself.  For the dense analysis of
+    problems of moderate size (see :data:`DENSE_ANALYSIS_ENTRIES`)."""
+    r, Jc = compressed_jacobian(fun, x, structure, args, local)
+    nb = structure.nb
+    J = np.zeros((structure.m, structure.n))
+    rows = np.arange(structure.m)[:, None]
+    J[rows, structure.blocks[structure.row_block]] = Jc[:, :nb]
+    J[rows, structure.shared[structure.row_group]] = Jc[:, nb:]
+    return r, J, Jc
+
+
+def square_root_information(Jc: np.ndarray, row_block: np.ndarray, structure: Structure) -> np.ndarray:
+    """An n × n matrix R with RᵀR = JᵀJ for the rows of compressed Jacobian ``Jc`` (their blocks in
+    ``row_block``), by orthogonal transformations only (so R has J's singular values and right
+    singular vectors to round-off): a QR factorisation of each block's rows [J_b | J_s], then one
+    of the stacked shared remainders.  One group of shared unknowns only (the structure of a
+    model-built problem).  The observability analysis of a structured problem works on R, an
+    n × n matrix, instead of the m × n Jacobian."""
+    if structure.n_groups != 1:
+        raise SolverError("square_root_information needs one group of shared unknowns")
+    nb, ks, B, n = structure.nb, structure.ks, structure.n_blocks, structure.n
+    c = nb + ks
+    counts = np.bincount(row_block, minlength=B)
+    L = max(int(counts.max()) if len(row_block) else 0, c)
+    order = np.argsort(row_block, kind="stable")
+    first = np.concatenate([[0], np.cumsum(counts)])[:-1]
+    table = np.zeros((B, L, c))  # each block's rows, padded with zero rows (they change nothing)
+    sorted_blocks = row_block[order]
+    table[sorted_blocks, np.arange(len(order)) - first[sorted_blocks]] = Jc[order]
+    R: Any = np.linalg.qr(table, mode="r")  # (B, c, c): only R (numpy's stubs type the result loosely)
+    Rs: Any = np.linalg.qr(np.ascontiguousarray(R[:, nb:, nb:]).reshape(B * ks, ks), mode="r")
+    out = np.zeros((n, n))
+    blocks, shared = structure.blocks, structure.shared[0]
+    out[blocks[:, :, None], blocks[:, None, :]] = R[:, :nb, :nb]
+    out[blocks[:, :, None], shared[None, None, :]] = R[:, :nb, nb:]
+    out[shared[:, None], shared[None, :]] = Rs
+    return out
+
+
+DENSE_ANALYSIS_ENTRIES = 40_000_000
+"""The largest m × n Jacobian (320 MB) that :func:`mbcal.calibrate` analyses densely after a
+structured solve (the full report: rank, covariance, fit verdict, point uncertainties); larger
+problems are solved with :func:`least_squares_structured` and analysed with
+:func:`analyze_structured`."""

@@ -1,0 +1,192 @@
+"""Fixed overhead (issue 16): a warm call neither traces nor compiles; start-up imports only what
+a command needs."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import mbcal
+from mbcal._jax import jax
+from mbcal.cache import PROGRAMS, ProgramCache
+from mbcal.problem import Problem
+from mbcal.workflows.cameras import calibrate_cameras, simulate_views
+
+from conftest import MODELS, ROOT
+
+TRACE = "/jax/core/compile/jaxpr_trace_duration"
+LOWER = "/jax/core/compile/jaxpr_to_mlir_module_duration"
+COMPILE = "/jax/core/compile/backend_compile_duration"
+
+
+@contextlib.contextmanager
+def jax_events():
+    """Count JAX's tracing, lowering and compiling events while the block runs."""
+    counts = {TRACE: 0, LOWER: 0, COMPILE: 0}
+
+    def listener(event: str, duration: float, **_kw) -> None:
+        if event in counts:
+            counts[event] += 1
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        yield counts
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+
+
+def camera_data(model: mbcal.Model, views: int, seed: int) -> mbcal.MeasurementSet:
+    """Simulated corners of the bundled 9 × 6 board in ``views`` random poses."""
+    truth = {"cam.fx": 812.0, "cam.fy": 806.5, "cam.cx": 327.0, "cam.cy": 236.0, "cam.k1": -0.21, "cam.k2": 0.08}
+    return simulate_views(model, views, truth, seed=seed, distance=(0.45, 0.7))[0]
+
+
+@pytest.fixture(scope="module")
+def camera():
+    return mbcal.load_model(MODELS / "camera_calibration.mdl")
+
+
+@pytest.mark.slow
+def test_a_warm_calibration_neither_traces_nor_compiles_and_gives_the_same_numbers(camera):
+    data = camera_data(camera, 4, seed=3)
+    first = calibrate_cameras(camera, data)
+    again = camera_data(camera, 4, seed=3)  # a new set of the same structure, as a second file would be
+    with jax_events() as counts:
+        second = calibrate_cameras(camera, again)
+    assert counts == {TRACE: 0, LOWER: 0, COMPILE: 0}
+    np.testing.assert_array_equal(second.result.x, first.result.x)
+    np.testing.assert_array_equal(second.result.observability.covariance, first.result.observability.covariance)
+    assert second.rms == first.rms and second.views == first.views
+    assert [p.perpendicular for p in second.result.points] == [p.perpendicular for p in first.result.points]
+    # Other measured values (the same structure): still no tracing, and a different answer.
+    other = camera_data(camera, 4, seed=4)
+    with jax_events() as counts:
+        third = calibrate_cameras(camera, other)
+    assert counts[TRACE] == 0
+    assert not np.array_equal(third.result.x, first.result.x)
+
+
+def test_residual_and_jacobian_from_one_pass_match_the_separate_programs(camera):
+    data = camera_data(camera, 2, seed=5)
+    problem = Problem(camera, data, ["cam.fx", "cam.fy", "cam.cx", "cam.cy", "board.*"])
+    x = problem.params.x0 + 0.01
+    r, J = problem.residual_and_jacobian(x)
+    np.testing.assert_allclose(r, problem.residual(x), rtol=1e-13, atol=1e-12)
+    np.testing.assert_allclose(J, problem.jacobian(x), rtol=1e-13, atol=1e-12)
+    # The Jacobian against central finite differences in every unknown.
+    h = 1e-6
+    for j in range(problem.params.size):
+        step = np.zeros_like(x)
+        step[j] = h
+        fd = (problem.residual(x + step) - problem.residual(x - step)) / (2 * h)
+        np.testing.assert_allclose(J[:, j], fd, rtol=1e-5, atol=1e-5 * np.abs(J).max())
+
+
+def test_problems_of_one_structure_share_their_programs_and_others_do_not(camera):
+    data = camera_data(camera, 2, seed=6)
+    a = Problem(camera, data, ["cam.fx", "board.*"])
+    b = Problem(camera, camera_data(camera, 2, seed=7), ["cam.fx", "board.*"])
+    assert b.residual_function is a.residual_function and b.local is a.local
+    c = Problem(camera, data, ["cam.fy", "board.*"])  # other unknowns
+    assert c.residual_function is not a.residual_function
+    reloaded = mbcal.load_model(MODELS / "camera_calibration.mdl")  # an equal model, another object
+    d = Problem(reloaded, camera_data(reloaded, 2, seed=6), ["cam.fx", "board.*"])
+    assert d.residual_function is not a.residual_function
+    # Each problem still sees its own measured values.
+    x = a.params.x0
+    assert not np.allclose(a.residual(x), b.residual(x))
+
+
+def test_the_program_cache_is_bounded_and_drops_the_least_recently_used():
+    cache = ProgramCache(3)
+    built = []
+    for key in ("a", "b", "c", "a", "d", "e"):
+        cache.get(key, lambda key=key: built.append(key) or key.upper())
+    assert built == ["a", "b", "c", "d", "e"]  # "a" was used again before it could be dropped
+    assert len(cache) == 3
+    assert cache.get("a", lambda: "new") == "A" and cache.get("b", lambda: "rebuilt") == "rebuilt"
+    assert PROGRAMS.size <= 16
+
+
+def run_python(code: str, **env: str) -> dict:
+    full = {**os.environ, **env}
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, env=full)
+    assert proc.returncode == 0, proc.stderr
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+HEAVY = ("matplotlib", "pyrender", "trimesh", "cv2", "scipy", "OpenGL", "PIL")
+
+
+def test_import_mbcal_loads_no_heavy_library():
+    loaded = run_python(
+        "import json, sys; import mbcal; print(json.dumps(sorted(m for m in sys.modules if '.' not in m)))"
+    )
+    assert not [m for m in HEAVY if m in loaded], loaded
+
+
+def test_the_calibration_path_does_not_import_scipy_stats_or_plotting():
+    # scipy.stats alone took 0.35 s of every solving command's start-up (the χ² tails come from
+    # scipy.special); plotting and rendering load only where a command draws.
+    loaded = run_python(
+        "import json, sys; import mbcal.api, mbcal.workflows.cameras, mbcal.cli; print(json.dumps(sorted(sys.modules)))"
+    )
+    assert not [m for m in loaded if m == "scipy.stats" or m.split(".")[0] in ("matplotlib", "pyrender", "cv2")]
+
+
+@pytest.mark.parametrize("argv", [["--help"], ["check", "models/camera_calibration.mdl"]])
+def test_the_cli_starts_without_heavy_libraries(argv):
+    code = (
+        "import json, sys\n"
+        "from mbcal.cli import main\n"
+        "try:\n"
+        f"    code = main({argv!r})\n"
+        "except SystemExit as e:\n"
+        "    code = e.code\n"
+        "print()\n"
+        "print(json.dumps({'code': code, 'loaded': sorted(m for m in sys.modules if '.' not in m)}))\n"
+    )
+    out = run_python(code)
+    assert out["code"] in (0, None)
+    assert not [m for m in HEAVY + ("jax",) if m in out["loaded"]], out["loaded"]
+
+
+@pytest.mark.slow
+def test_the_overhead_bench_runs_on_a_tiny_size_and_writes_its_section(tmp_path):
+    out = tmp_path / "performance.md"
+    out.write_text("# Performance\n\nkept\n")
+    proc = subprocess.run(
+        [sys.executable, "bench/overhead.py", "--views", "3", "--repeats", "1", "--no-demo", "--out", str(out)],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        env={**os.environ, "MBCAL_CACHE_DIR": str(tmp_path / "cache")},
+    )
+    assert proc.returncode == 0, proc.stderr
+    text = out.read_text()
+    assert text.startswith("# Performance\n\nkept\n")
+    assert "<!-- bench/overhead.py: begin -->" in text and "<!-- bench/overhead.py: end -->" in text
+    # The warm call neither traced nor compiled, and mbcal agrees with OpenCV on the same corners.
+    assert "| 0 / 0 |" in text
+    results = json.loads(proc.stdout)
+    assert abs(results["warm"]["rms"] - results["warm"]["rms_opencv"]) < 1e-3
+    assert results["cold"]["second"]["first_s"] < results["cold"]["first"]["first_s"]
+
+
+def test_whole_scenes_from_the_compiled_program_match_the_modeler_run_op_by_op(camera):
+    data = camera_data(camera, 2, seed=8)
+    problem = Problem(camera, data, ["cam.fx", "board.*"])
+    x = problem.params.x0 + 0.02
+    compiled = problem.whole_scenes(x)
+    from mbcal.modeling import Needs
+
+    eager = problem.scenes(jax.numpy.asarray(x), needs=Needs.everything())
+    for name in ("frame_poses", "points", "camera_intrinsics", "camera_distortion", "shape_poses", "shape_dims"):
+        np.testing.assert_allclose(getattr(compiled, name), np.asarray(getattr(eager, name)), rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(problem.frame_origins(x), compiled.frame_poses[..., :3, 3], rtol=1e-13, atol=1e-13)

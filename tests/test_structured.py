@@ -1,0 +1,249 @@
+"""The Schur-complement solver (issue 15): the same iterates as the dense solver, BAL files, rank
+deficient blocks named, the automatic structure of a camera calibration."""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pytest
+
+import mbcal
+from mbcal._jax import jax, jnp
+from mbcal.datasets.bal import BalFileError, bal_residual, read_bal
+from mbcal.errors import SolverError
+from mbcal.problem import Problem
+from mbcal.solver import SolverConfig, least_squares
+from mbcal.structured import (
+    Structure,
+    analyze_structured,
+    bal_structure,
+    check_structure,
+    compressed_jacobian,
+    dense_jacobian,
+    least_squares_structured,
+    pays,
+    square_root_information,
+    structure_of,
+)
+from mbcal.workflows.cameras import default_unknowns, initial_values
+
+from conftest import MODELS, ROOT, run_python, shared_data
+
+sys.path.insert(0, str(ROOT / "bench"))
+
+from scale import synthetic_views  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def camera20():
+    """A 20-view synthetic camera calibration as a model-built problem, from Zhang's start."""
+    model = mbcal.load_model(MODELS / "camera_calibration.mdl")
+    data = synthetic_views(model, 20, seed=1)
+    problem = Problem(model, data, default_unknowns(model, data))
+    x0 = problem.params.from_dict(initial_values(model, data, problem.params.names))
+    return model, data, problem, x0
+
+
+@pytest.fixture(scope="module")
+def dubrovnik():
+    bal = read_bal(shared_data("bal", "dubrovnik-3-7-pre.txt"))
+    C = bal.n_cameras
+
+    def fun(x, ci, pi, obs):
+        return bal_residual(x, ci, pi, obs, C)
+
+    return bal, fun, (bal.camera_index, bal.point_index, bal.observed)
+
+
+@pytest.mark.slow
+def test_structured_iterates_agree_with_the_dense_solver_on_a_20_view_calibration(camera20):
+    _, _, problem, x0 = camera20
+    structure = structure_of(problem)
+    assert structure is not None and structure.blocks.shape == (20, 6) and structure.shared.shape == (1, 9)
+    assert pays(structure)
+    # The blocks are each view's board pose, found by name.
+    names = problem.params.names
+    assert {names[j] for j in structure.blocks[16]} == {
+        f"board.{k}@view17" for k in ("x", "y", "z", "roll", "pitch", "yaw")
+    }
+    args = (problem.y, problem.params.known)
+    for cap in (2, 100):  # the iterate after two iterations, and the converged result
+        config = SolverConfig(max_iterations=cap)
+        dense = least_squares(problem.residual_function, x0, args=args, config=config, local=problem.local)
+        ours = least_squares_structured(
+            problem.residual_function, x0, structure, args=args, config=config, local=problem.local
+        )
+        scale = np.maximum(1.0, np.abs(dense.x_best))
+        assert np.max(np.abs(ours.x_best - dense.x_best) / scale) < 1e-10, cap
+        assert ours.iterations[0] == dense.iterations[0]
+        assert ours.cost_best == pytest.approx(dense.cost_best, rel=1e-10)
+    assert ours.status_best.converged
+    # σ from the reduced system and the block marginals equal the dense inverse of JᵀJ.
+    analysis = analyze_structured(problem.residual_function, ours.x_best, structure, args=args)
+    J = problem.jacobian(ours.x_best)
+    cov = np.linalg.inv(J.T @ J)
+    np.testing.assert_allclose(analysis.shared_std, np.sqrt(np.diag(cov))[structure.shared.ravel()], rtol=1e-7)
+    np.testing.assert_allclose(analysis.block_std, np.sqrt(np.diag(cov))[structure.blocks], rtol=1e-7)
+    block = structure.blocks[4]
+    np.testing.assert_allclose(analysis.block_covariance(4), cov[np.ix_(block, block)], rtol=1e-6, atol=1e-18)
+    assert analysis.rank == problem.params.size and analysis.observable
+    # The full Jacobian assembled from the compressed one is the full Jacobian, and the n × n
+    # factor the report analyses has its singular values.
+    r, J_assembled, Jc = dense_jacobian(problem.residual_function, ours.x_best, structure, args)
+    np.testing.assert_allclose(J_assembled, J, rtol=1e-12, atol=1e-12 * np.abs(J).max())
+    R = square_root_information(Jc, structure.row_block, structure)
+    assert R.shape == (problem.params.size, problem.params.size)
+    sv = np.linalg.svd(J, compute_uv=False)
+    np.testing.assert_allclose(np.linalg.svd(R, compute_uv=False), sv, rtol=1e-9, atol=1e-12 * sv[0])
+
+
+@pytest.mark.slow
+def test_calibrate_chooses_the_structured_solver_and_reports_what_the_dense_one_does(camera20):
+    model, data, problem, _ = camera20
+    start = initial_values(model, data, problem.params.names)
+    estimate = default_unknowns(model, data)
+    auto = mbcal.calibrate(model, data, estimate, restarts=2, initial=start, points=[])
+    dense = mbcal.calibrate(model, data, estimate, restarts=2, initial=start, points=[],
+                            config=SolverConfig(structure="dense"))  # fmt: skip
+    for name in ("cam.fx", "cam.k1", "board.yaw@view07"):
+        assert auto.values[name] == pytest.approx(dense.values[name], rel=1e-9, abs=1e-12)
+        assert auto.std[name] == pytest.approx(dense.std[name], rel=1e-7)
+    assert auto.cost == pytest.approx(dense.cost, rel=1e-10)
+    # Forced structured on a problem without configurations of their own: a clear error.
+    room = mbcal.load_model(MODELS / "teleexistence.mdl")
+    plan = mbcal.read_measurements(ROOT / "measurements" / "room_plan.csv", room)
+    room_data = mbcal.simulate(room, plan, {}, noise=0)
+    with pytest.raises(SolverError, match="no configurations with unknowns of their own"):
+        mbcal.calibrate(room, room_data, ["room.*"], restarts=1, config=SolverConfig(structure="structured"))
+
+
+@pytest.mark.slow
+def test_a_block_seen_along_one_line_is_named_not_crashed():
+    """View 3 sees one row of the board only (collinear corners): its rotation about that row is
+    unobservable. The structured solve finishes and the analysis names that view's pose."""
+    model = mbcal.load_model(MODELS / "camera_calibration.mdl")
+    data = synthetic_views(model, 10, seed=2)
+    keep = np.array([m.config != "view03" or m.refs["point"].startswith("board.r0c") for m in data])
+    problem = Problem(model, data.subset(keep), default_unknowns(model, data))
+    start = initial_values(model, data, problem.params.names)  # from every corner: one row has no homography
+    data = data.subset(keep)
+    structure = structure_of(problem)
+    x0 = problem.params.from_dict(start)
+    args = (problem.y, problem.params.known)
+    solved = least_squares_structured(problem.residual_function, x0, structure, args=args, local=problem.local)
+    assert np.all(np.isfinite(solved.x_best)) and np.isfinite(solved.cost_best)
+    analysis = analyze_structured(problem.residual_function, solved.x_best, structure, args=args)
+    assert not analysis.observable and analysis.rank == problem.params.size - 1
+    [direction] = analysis.unobservable
+    assert direction["where"] == "block 2"
+    assert all(name.endswith("@view03") for name in direction["combination"])
+    assert np.isfinite(analysis.shared_std).all()  # the intrinsics stay determined by the other views
+
+
+@pytest.mark.slow
+def test_dubrovnik_converges_to_the_cost_scipy_reaches(dubrovnik):
+    scipy_optimize = pytest.importorskip("scipy.optimize")
+    bal, fun, args = dubrovnik
+    structure = bal_structure(bal)
+    check_structure(fun, bal.x0, structure, args)  # every row depends on its point and camera only
+    ours = least_squares_structured(fun, bal.x0, structure, args=args)
+    f = jax.jit(fun)
+    jac = jax.jit(jax.jacfwd(fun))
+    theirs = scipy_optimize.least_squares(
+        lambda x: np.asarray(f(x, *args)), bal.x0, jac=lambda x: np.asarray(jac(x, *args)), method="trf",
+        xtol=1e-15, ftol=1e-15, gtol=1e-15,
+    )  # fmt: skip
+    initial = float(np.sum(np.asarray(f(bal.x0, *args)) ** 2))
+    assert initial > 5000
+    assert ours.status_best.converged
+    # 38 residuals, 48 unknowns: both fit the data exactly (Σr² at round-off).
+    assert ours.cost_best < 1e-12 * initial and 2 * theirs.cost < 1e-12 * initial
+    # The first iterates agree with the dense solver too.
+    config = SolverConfig(max_iterations=3)
+    a = least_squares_structured(fun, bal.x0, structure, args=args, config=config)
+    b = least_squares(fun, bal.x0, args=args, config=config)
+    assert np.max(np.abs(a.x_best - b.x_best) / np.maximum(1.0, np.abs(b.x_best))) < 1e-10
+
+
+def test_the_compressed_jacobian_matches_finite_differences(dubrovnik):
+    bal, fun, args = dubrovnik
+    structure = bal_structure(bal)
+    x = bal.x0
+    r, Jc = compressed_jacobian(fun, x, structure, args)
+    f = jax.jit(fun)
+    J = np.zeros((structure.m, structure.n))
+    for j in range(structure.n):  # central differences, one unknown at a time
+        h = 1e-6 * max(1.0, abs(x[j]))
+        e = np.zeros_like(x)
+        e[j] = h
+        J[:, j] = (np.asarray(f(x + e, *args)) - np.asarray(f(x - e, *args))) / (2 * h)
+    rows = np.arange(structure.m)[:, None]
+    np.testing.assert_allclose(r, np.asarray(f(x, *args)))
+    scale = np.max(np.abs(J))
+    np.testing.assert_allclose(Jc[:, :3], J[rows, structure.blocks[structure.row_block]], atol=1e-6 * scale)
+    np.testing.assert_allclose(Jc[:, 3:], J[rows, structure.shared[structure.row_group]], atol=1e-6 * scale)
+
+
+@pytest.mark.slow
+def test_a_broken_structure_promise_is_caught():
+    def fun(x):
+        return jnp.stack([x[0] - 1.0, x[1] + x[2], x[2] * x[0]])  # row 2 mixes block 0 and block 1
+
+    structure = Structure(blocks=[[0], [1]], shared=[[2]], row_block=[0, 1, 1], row_group=[0, 0, 0])
+    with pytest.raises(SolverError, match="residual row 2 depends on unknown 0"):
+        check_structure(fun, np.ones(3), structure)
+    with pytest.raises(SolverError, match="exactly one block"):
+        Structure(blocks=[[0], [1]], shared=[[1]], row_block=[0], row_group=[0])
+
+
+def test_bal_files_with_mistakes_get_located_errors(tmp_path):
+    good = "2 1 2\n0 0 1.0 2.0\n1 0 3.0 4.0\n" + "\n".join(["0.1"] * 18) + "\n1\n2\n3\n"
+    path = tmp_path / "good.txt"
+    path.write_text(good)
+    bal = read_bal(path)
+    assert bal.cameras.shape == (2, 9) and bal.points.tolist() == [[1.0, 2.0, 3.0]]
+    assert bal.observed.tolist() == [[1.0, 2.0], [3.0, 4.0]]
+    cases = {
+        "2 1 2\n0 0 1.0 2.0\n2 0 3.0 4.0\n": r"bad.txt:3:1: camera 2 is not one of the 2 cameras",
+        "2 1 2\n0 0 1.0 zwei\n": r"bad.txt:2:9: expected a number \(y of observation 1\), found 'zwei'",
+        "2 1 2\n0 0 1.0 2.0\n": r"bad.txt:2:12: the file ends where the camera of observation 2 was expected",
+        good + "7\n": r"bad.txt:\d+:1: unexpected '7' after the last point",
+        "2 -1 2\n": r"bad.txt:1:3: the number of points must not be negative",
+    }
+    for text, message in cases.items():
+        bad = tmp_path / "bad.txt"
+        bad.write_text(text)
+        with pytest.raises(BalFileError, match=message):
+            read_bal(bad)
+    with pytest.raises(BalFileError, match="missing.txt: cannot read"):
+        read_bal(tmp_path / "missing.txt")
+
+
+@pytest.mark.slow
+def test_the_scale_bench_runs_tiny(tmp_path):
+    pytest.importorskip("cv2")
+    shared_data("bal", "dubrovnik-3-7-pre.txt")
+    out = tmp_path / "performance.md"
+    proc = run_python("bench/scale.py", "--quick", "--out", str(out))
+    assert proc.returncode == 0, proc.stderr
+    text = out.read_text()
+    assert "## Many configurations: the Schur complement" in text and "| 13 | 702 |" in text
+    assert "dubrovnik-3-7-pre.txt" in text and "mbcal structured" in text
+
+
+@pytest.mark.slow
+def test_the_command_line_forces_the_solver_and_refuses_what_cannot_be_structured(tmp_path, capsys):
+    from mbcal.cli import main
+    from mbcal.measurements.io import write_measurements
+
+    room = mbcal.load_model(MODELS / "teleexistence.mdl")
+    plan = mbcal.read_measurements(ROOT / "measurements" / "room_plan.csv", room)
+    data = tmp_path / "room.csv"
+    write_measurements(mbcal.simulate(room, plan, {}, noise=0), data)
+    argv = ["solve", str(MODELS / "teleexistence.mdl"), str(data), "--estimate", "room.*", "--restarts", "1"]
+    assert main([*argv, "--structure", "structured"]) == 2
+    assert "the structured solver cannot solve this problem" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main([*argv, "--structure", "sparse"])
+    assert "invalid choice: 'sparse'" in capsys.readouterr().err

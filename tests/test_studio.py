@@ -1,0 +1,468 @@
+"""The studio (``mbcal studio``): its server's security rules, the session kept on disk, model
+errors and reloads — with a real uvicorn server and, for the page, Debian's Chromium driven by
+Playwright (docs/studio.md)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("fastapi", reason="the studio's extra: pip install 'mbcal[studio]'")
+pytest.importorskip("uvicorn", reason="the studio's extra: pip install 'mbcal[studio]'")
+httpx = pytest.importorskip("httpx")
+
+from mbcal.studio.engine import Engine  # noqa: E402
+from mbcal.studio.server import MAX_BODY, StudioServer  # noqa: E402
+from mbcal.studio.session import SESSION_FILE  # noqa: E402
+
+SMALL = """\
+param block.x = 0 m in [-10 cm, 10 cm]
+param block.y = 0 m in [-10 cm, 10 cm]
+param block.z = 2 m in [1.8 m, 2.2 m]
+camera cam(width = 320, height = 240, fx = 300, fy = 300, cx = 159.5, cy = 119.5)
+frame block at translate(block.x, block.y, block.z) {
+  shape body = box(40 cm, 30 cm, 20 cm)
+  point a = (-20 cm, -15 cm, -10 cm)
+  point b = (20 cm, -15 cm, -10 cm)
+  point c = (20 cm, 15 cm, -10 cm)
+  point d = (-20 cm, 15 cm, -10 cm)
+}
+measure image_point
+"""
+
+
+def _photo(path: Path, width: int = 320, height: int = 240) -> Path:
+    from PIL import Image
+
+    rng = np.random.default_rng(0)
+    Image.fromarray(rng.integers(0, 255, (height, width, 3), dtype=np.uint8)).save(path)
+    return path
+
+
+@pytest.fixture
+def small(tmp_path):
+    """A small model, its photo and an output folder."""
+    model = tmp_path / "small.mdl"
+    model.write_text(SMALL, encoding="utf-8")
+    return model, _photo(tmp_path / "photo.png"), tmp_path / "out"
+
+
+@pytest.fixture
+def server(small):
+    model, photo, out = small
+    srv = StudioServer(Engine(model, [], [("cam", "default", photo)], out)).start()
+    yield srv
+    srv.stop()
+
+
+def _session_when(out: Path, condition, timeout: float = 20.0) -> dict:
+    """The session file once ``condition`` holds for it (the page saves asynchronously)."""
+    import time
+
+    end = time.monotonic() + timeout
+    while True:
+        doc = json.loads((out / SESSION_FILE).read_text())
+        if condition(doc):
+            return doc
+        if time.monotonic() > end:
+            raise AssertionError(f"the session file never reached the expected state: {doc}")
+        time.sleep(0.05)
+
+
+def _base(srv: StudioServer) -> str:
+    return f"http://127.0.0.1:{srv.port}"
+
+
+def _client(srv: StudioServer) -> httpx.Client:
+    """A client that opened the page's URL (it holds the cookie)."""
+    c = httpx.Client(timeout=30)
+    assert c.get(srv.url).status_code == 200
+    return c
+
+
+POST = {"Content-Type": "application/json"}
+
+
+def test_the_token_is_required_and_becomes_an_httponly_strict_cookie(server):
+    base = _base(server)
+    assert httpx.get(base + "/").status_code == 403
+    assert httpx.get(base + "/api/state").status_code == 403
+    assert httpx.get(base + "/?token=wrong").status_code == 403
+    assert httpx.get(base + "/api/state", cookies={"mbcal_studio": "wrong"}).status_code == 403
+    r = httpx.get(server.url)
+    assert r.status_code == 200 and "<title>mbcal studio</title>" in r.text
+    cookie = r.headers["set-cookie"].lower()
+    assert "httponly" in cookie and "samesite=strict" in cookie
+    c = _client(server)
+    assert c.get(base + "/api/state").json()["model"] == "small.mdl"
+    assert "frame-ancestors 'none'" in c.get(base + "/").headers["content-security-policy"]
+
+
+def test_paths_from_the_page_are_never_opened(server, small):
+    base = _base(server)
+    c = _client(server)
+    secret = small[0].resolve()
+    for path in [
+        "/static/../engine.py",
+        "/static/..%2Fengine.py",
+        "/api/photo/..%2F..%2Fsmall.mdl",
+        "/api/photo/%2Fetc%2Fpasswd",
+        f"/api/photo/{secret}",
+        "/api/photo//etc/passwd",
+        "/static/%2e%2e/server.py",
+        "/api/photo/..\\small.mdl",
+    ]:
+        r = c.get(base + path)
+        assert r.status_code in (400, 404), (path, r.status_code)
+        assert "param block.x" not in r.text
+    assert c.get(base + "/static/index.html").status_code == 404  # the page's files are a fixed list
+    assert c.get(base + "/api/photo/p0").content[:4] == b"\x89PNG"
+    origin = {"Origin": base, **POST}
+    # A path where an id is expected is refused by the schema.
+    for photo in ["/etc/passwd", "../small.mdl", str(secret)]:
+        r = c.post(base + "/api/overlay", json={"photos": [photo]}, headers=origin)
+        assert r.status_code == 422, photo
+        r = c.post(base + "/api/solid", json={"photo": photo}, headers=origin)
+        assert r.status_code == 422, photo
+    bad_click = {"id": "c1", "camera": "cam", "config": "default", "point": "../../etc/passwd", "u": 1, "v": 2}
+    r = c.post(base + "/api/session", json={"clicks": [bad_click]}, headers=origin)
+    assert r.status_code == 422
+    # The save format is an enum: no file name from the page.
+    r = c.post(base + "/api/save", json={"format": "../../evil.csv"}, headers=origin)
+    assert r.status_code == 422
+    assert c.get(base + "/api/state").status_code == 200
+
+
+def test_other_origins_hosts_oversized_and_malformed_bodies_are_refused(server):
+    base = _base(server)
+    c = _client(server)
+    body = {"clicks": [], "estimate": ["block.*"]}
+    assert (
+        c.post(base + "/api/session", json=body, headers={"Origin": "http://evil.example", **POST}).status_code == 403
+    )
+    assert c.post(base + "/api/session", json=body, headers=POST).status_code == 403  # no Origin
+    assert c.post(base + "/api/session", json=body, headers={"Origin": base, **POST}).status_code == 200
+    r = c.get(base + "/api/state", headers={"Host": "attacker.example:80"})
+    assert r.status_code == 403  # DNS rebinding: the Host must be the server's
+    r = c.post(base + "/api/session", content=json.dumps(body), headers={"Origin": base, "Content-Type": "text/plain"})
+    assert r.status_code == 415
+    big = b'{"clicks": [], "estimate": ["' + b"x" * (MAX_BODY + 10) + b'"]}'
+    r = c.post(base + "/api/session", content=big, headers={"Origin": base, **POST})
+    assert r.status_code == 413
+    r = c.post(base + "/api/session", content=b'{"clicks": [', headers={"Origin": base, **POST})
+    assert r.status_code == 422 and "invalid request" in r.json()["error"]["message"]
+    r = c.post(base + "/api/session", json={"clicks": [], "extra": 1}, headers={"Origin": base, **POST})
+    assert r.status_code == 422
+    nan_click = {"id": "c1", "camera": "cam", "config": "default", "point": "block.a", "u": "NaN", "v": 2}
+    r = c.post(base + "/api/session", json={"clicks": [nan_click]}, headers={"Origin": base, **POST})
+    assert r.status_code == 422
+    r = c.post(
+        base + "/api/session",
+        json={"clicks": [{**nan_click, "u": 1, "point": "block.zz"}]},
+        headers={"Origin": base, **POST},
+    )
+    assert r.status_code == 400 and "no point 'block.zz'" in r.json()["error"]["message"]
+    assert c.get(base + "/api/state").status_code == 200  # still up
+
+
+def test_edits_are_saved_at_once_and_survive_a_restart(small):
+    model, photo, out = small
+    click = {"id": "c1", "camera": "cam", "config": "default", "point": "block.a", "u": 129.5, "v": 97.0, "sigma": 0.5}
+    srv = StudioServer(Engine(model, [], [("cam", "default", photo)], out)).start()
+    try:
+        c = _client(srv)
+        r = c.post(
+            _base(srv) + "/api/session",
+            json={"clicks": [click], "estimate": ["block.*"], "values": {"block.x": 0.01}},
+            headers={"Origin": _base(srv), **POST},
+        )
+        assert r.status_code == 200
+        saved = json.loads((out / SESSION_FILE).read_text())
+        assert saved["clicks"][0]["u"] == 129.5 and saved["estimate"] == ["block.*"]
+    finally:
+        srv.stop()
+    srv = StudioServer(Engine(model, [], [("cam", "default", photo)], out)).start()
+    try:
+        state = _client(srv).get(_base(srv) + "/api/state").json()
+        assert state["session"]["clicks"] == [click]
+        assert state["session"]["values"] == {"block.x": 0.01}
+    finally:
+        srv.stop()
+
+
+def test_the_studio_without_its_extra_says_how_to_install_it():
+    # A Python where fastapi is not found.
+    code = (
+        "import importlib.util, sys\n"
+        "real = importlib.util.find_spec\n"
+        "importlib.util.find_spec = lambda n, *a: None if n == 'fastapi' else real(n, *a)\n"
+        "from mbcal.cli import main\n"
+        "sys.exit(main(['studio', 'models/teleexistence.mdl', '--no-browser']))\n"
+    )
+    r = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1]
+    )
+    assert r.returncode == 2
+    assert "pip install 'mbcal[studio]'" in r.stderr
+    assert "Traceback" not in r.stderr
+
+
+# ---- the page, in Chromium ------------------------------------------------------------------------------
+
+
+def open_page(browser, url: str, width: int = 1600, height: int = 1000):
+    page = browser.new_page(viewport={"width": width, "height": height})
+    page.goto(url)
+    page.wait_for_selector("body[data-ready='1']", timeout=60_000)
+    return page
+
+
+def click_point(page, photo: str, point: str, u: float, v: float) -> None:
+    """Pick ``point`` by searching its name, then click (u, v) of the photo with the mouse."""
+    page.fill("#search", point)
+    page.press("#search", "Enter")
+    page.wait_for_selector(f"#pointlist li.armed[data-point='{point}']")
+    x, y = page.evaluate("([p, u, v]) => window.studio.toClient(p, u, v)", [photo, u, v])
+    page.mouse.click(x, y)
+    page.wait_for_function("(n) => document.querySelectorAll('#clicks tbody tr').length >= n", arg=1)
+
+
+@pytest.mark.slow
+def test_clicks_in_the_page_survive_a_restart_and_a_model_reload(browser, small):
+    model, photo, out = small
+    srv = StudioServer(Engine(model, [], [("cam", "default", photo)], out)).start()
+    try:
+        page = open_page(browser, srv.url)
+        page.wait_for_selector("svg[data-photo='p0'] .wire path")
+        click_point(page, "p0", "block.a", 110.25, 80.5)
+        click_point(page, "p0", "block.b", 210.0, 81.0)
+        page.wait_for_function("() => document.querySelectorAll('#clicks tbody tr').length === 2")
+        _session_when(out, lambda s: len(s["clicks"]) == 2)
+        page.close()
+    finally:
+        srv.stop()
+    saved = json.loads((out / SESSION_FILE).read_text())["clicks"]
+    assert [c["point"] for c in saved] == ["block.a", "block.b"]
+    # The mouse puts the click where it was asked to, to a small fraction of a pixel.
+    assert abs(saved[0]["u"] - 110.25) < 0.15 and abs(saved[0]["v"] - 80.5) < 0.15
+    srv = StudioServer(Engine(model, [], [("cam", "default", photo)], out)).start()
+    try:
+        page = open_page(browser, srv.url)
+        rows = page.locator("#clicks tbody tr")
+        assert rows.count() == 2
+        assert "block.b" in rows.nth(1).inner_text() or "b" in rows.nth(1).inner_text()
+        # Undo and redo with the keyboard; delete with the Delete key.
+        page.click("#clicks tbody tr[data-click='c2'] td")
+        page.keyboard.press("Delete")
+        page.wait_for_function("() => document.querySelectorAll('#clicks tbody tr').length === 1")
+        page.keyboard.press("Control+z")
+        page.wait_for_function("() => document.querySelectorAll('#clicks tbody tr').length === 2")
+        page.keyboard.press("Control+y")
+        page.wait_for_function("() => document.querySelectorAll('#clicks tbody tr').length === 1")
+        page.keyboard.press("Control+z")
+        page.wait_for_function("() => document.querySelectorAll('#clicks tbody tr').length === 2")
+        # The model changes: point b is renamed; a reload keeps a, drops b and says so.
+        model.write_text(SMALL.replace("point b =", "point b2 ="), encoding="utf-8")
+        page.click("#reload")
+        page.wait_for_function("() => document.querySelectorAll('#clicks tbody tr').length === 1")
+        assert "dropped" in page.inner_text("#notes")
+        page.close()
+    finally:
+        srv.stop()
+    assert [c["point"] for c in json.loads((out / SESSION_FILE).read_text())["clicks"]] == ["block.a"]
+
+
+@pytest.mark.slow
+def test_a_model_error_is_shown_in_the_page_and_the_server_stays_up(browser, small):
+    model, photo, out = small
+    model.write_text(SMALL.replace("box(40 cm, 30 cm, 20 cm)", "box(40 cm, 30 cm, 20 kg)"), encoding="utf-8")
+    srv = StudioServer(Engine(model, [], [("cam", "default", photo)], out)).start()
+    try:
+        page = open_page(browser, srv.url)
+        assert page.is_visible("#error")
+        location = page.inner_text("#error-location")
+        assert f"{model}:6:" in location
+        assert "box(40 cm, 30 cm, 20 kg)" in page.inner_text("#error-source")
+        assert "^" in page.inner_text("#error-source")
+        assert _client(srv).get(_base(srv) + "/api/state").status_code == 200
+        model.write_text(SMALL, encoding="utf-8")
+        page.click("#reload")
+        page.wait_for_selector("#error", state="hidden")
+        page.wait_for_selector("svg[data-photo='p0'] .wire path")
+        page.close()
+    finally:
+        srv.stop()
+
+
+@pytest.mark.slow
+def test_the_page_tools_solid_opacity_objects_loupe_drag_zoom_observe_configurations(browser, small, tmp_path):
+    model, photo, out = small
+    photo2 = _photo(tmp_path / "photo2.png")
+    srv = StudioServer(Engine(model, [], [("cam", "default", photo), ("cam", "pose2", photo2)], out)).start()
+    try:
+        page = open_page(browser, srv.url)
+        page.wait_for_selector("svg[data-photo='p0'] .wire path[data-object='block']")
+        assert page.locator(".view").count() == 1  # one configuration at a time
+        # The translucent solid, rendered by the server, arrives.
+        page.wait_for_selector("svg[data-photo='p0'] image.solid[data-loaded='1']", state="attached")
+        # Opacity slider and per-object toggle.
+        page.eval_on_selector("#opacity", "e => { e.value = 0.25; e.dispatchEvent(new Event('input')); }")
+        assert page.get_attribute("svg[data-photo='p0'] g.overlay", "opacity") == "0.25"
+        page.uncheck("input[data-object='block']")
+        assert page.eval_on_selector("path[data-object='block']", "e => e.style.display") == "none"
+        page.check("input[data-object='block']")
+        # The loupe follows the mouse over a photo.
+        x, y = page.evaluate("() => window.studio.toClient('p0', 100, 100)")
+        page.mouse.move(x, y)
+        page.wait_for_selector("#loupe", state="visible")
+        assert "100.0" in page.inner_text("#loupe") or "99.9" in page.inner_text("#loupe")
+        # A refused action says why in the page, until the next action succeeds.
+        page.click("#observe")
+        page.wait_for_selector("#error", state="visible")
+        assert "choose the unknowns first" in page.inner_text("#error-location")
+        # Pick by clicking the marker, then the photo; then drag the click to a better place.
+        a = page.evaluate("() => window.studio.views.p0.proj.points.find(p => p.name === 'block.a')")
+        mx, my = page.evaluate("([u, v]) => window.studio.toClient('p0', u, v)", [a["u"], a["v"]])
+        page.mouse.click(mx, my)
+        page.wait_for_selector("#pointlist li.armed[data-point='block.a']")
+        x, y = page.evaluate("() => window.studio.toClient('p0', 80, 60)")
+        page.mouse.click(x, y)
+        page.wait_for_function("() => document.querySelectorAll('#clicks tbody tr').length === 1")
+        page.wait_for_selector("#error", state="hidden")
+        x2, y2 = page.evaluate("() => window.studio.toClient('p0', 90.5, 65.25)")
+        page.mouse.move(x, y)
+        page.mouse.down()
+        page.mouse.move((x + x2) / 2, (y + y2) / 2)
+        page.mouse.move(x2, y2)
+        page.mouse.up()
+        page.wait_for_function("() => window.studio.clicks[0].u > 89")
+        saved = _session_when(out, lambda s: s["clicks"] and s["clicks"][0]["u"] > 89)["clicks"][0]
+        assert abs(saved["u"] - 90.5) < 0.15 and abs(saved["v"] - 65.25) < 0.15
+        # σ is edited in the measurement table.
+        page.fill("input[data-sigma='c1']", "0.4")
+        page.press("input[data-sigma='c1']", "Enter")
+        assert _session_when(out, lambda s: s["clicks"][0]["sigma"] != 1.0)["clicks"][0]["sigma"] == 0.4
+        # Observe: one click cannot fix three unknowns; the page says so and marks points to click next.
+        page.fill("#estimate", "block.*")
+        page.press("#estimate", "Enter")
+        page.wait_for_selector("#sliders input[data-param='block.z']")
+        page.click("#observe")
+        page.wait_for_selector("#verdict")
+        assert page.inner_text("#verdict").startswith("NOT observable")
+        page.wait_for_selector("svg[data-photo='p0'] .marker.suggested")
+        # A coarse-alignment slider moves the overlay.
+        before = page.get_attribute("path[data-object='block']", "d")
+        n = page.evaluate("() => window.studio.redraws")
+        page.focus("#sliders input[data-param='block.x']")
+        page.keyboard.press("PageUp")
+        page.wait_for_function("(n) => window.studio.redraws > n", arg=n)
+        assert page.get_attribute("path[data-object='block']", "d") != before
+        # Zoom with the wheel.
+        box = page.get_attribute("svg[data-photo='p0']", "viewBox")
+        page.mouse.move(x, y)
+        page.mouse.wheel(0, -300)
+        page.wait_for_function(
+            "(b) => document.querySelector(\"svg[data-photo='p0']\").getAttribute('viewBox') !== b", arg=box
+        )
+        # The parameter tree: unchecking one unknown of a glob keeps the others.
+        page.click("#param-tree summary")  # the 'block' group is open: it holds chosen unknowns
+        assert page.is_checked("input[data-estimate='block.z']")
+        page.uncheck("input[data-estimate='block.z']")
+        page.wait_for_function("() => window.studio.estimate.join(',') === 'block.x,block.y'")
+        assert page.locator("#sliders input[data-param='block.z']").count() == 0
+        # Another configuration shows its own photo.
+        page.select_option("#config", "pose2")
+        page.wait_for_selector("svg[data-photo='p1'] .wire path")
+        assert page.locator("svg[data-photo='p0']").count() == 0
+        page.close()
+    finally:
+        srv.stop()
+
+
+@pytest.mark.slow
+def test_bad_command_lines_get_a_clear_message_and_status_2(tmp_path):
+    root = Path(__file__).resolve().parents[1]
+    cases = [
+        (["--image", "eyes.left"], "--image expects CAMERA=PHOTO"),
+        (["--image", f"eyes.left={tmp_path / 'missing.png'}"], "photo not found"),
+        (["--out", str(root / "README.md")], "is a file"),
+        (["missing.csv"], "file not found: missing.csv"),
+    ]
+    for extra, message in cases:
+        r = subprocess.run(
+            [sys.executable, "-m", "mbcal", "studio", "models/teleexistence.mdl", *extra, "--no-browser"],
+            capture_output=True,
+            text=True,
+            cwd=root,
+            timeout=120,
+        )
+        assert r.returncode == 2, (extra, r.stderr)
+        assert message in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+def test_the_page_ships_inside_the_package():
+    from importlib import resources
+
+    static = resources.files("mbcal.studio").joinpath("static")
+    for name in ("index.html", "studio.js", "studio.css"):
+        assert static.joinpath(name).is_file(), name
+    assert "/static/studio.js" in static.joinpath("index.html").read_text(encoding="utf-8")
+
+
+@pytest.mark.slow
+def test_each_configuration_is_drawn_with_its_own_joint_readings(tmp_path):
+    """The arm in two attitudes (joint readings from a measurement file), one photo each: each
+    photo's overlay is the model at its configuration's readings, and a per-configuration estimate
+    (name@config) moves only its own configuration's overlay."""
+    from mbcal.language import load_model
+    from mbcal.measurements.io import read_measurements
+    from mbcal.modeling import modeler, parameter_vector
+
+    root = Path(__file__).resolve().parents[1]
+    model_path, plan = root / "models" / "arm7.mdl", root / "measurements" / "arm_plan.json"
+    model = load_model(model_path)
+    readings = read_measurements(plan, model).configurations
+    photos = [("eyes.left", cfg, _photo(tmp_path / f"{cfg}.png", 669, 453)) for cfg in ("pose01", "pose02")]
+    engine = Engine(model_path, [plan], photos, tmp_path / "out")
+    assert {"pose01", "pose02"} <= set(engine.configurations())
+    assert engine.session.clicks == []  # a plan has no values: nothing to click yet
+    point = next(p.name for p in model.points if "arm" in p.name)
+    for pid, (_, cfg, _) in zip(["p0", "p1"], photos):
+        proj = engine.projection(pid)
+        scene = modeler(model, parameter_vector(model, readings[cfg]))
+        expected = np.asarray(scene.camera("eyes.left").project(scene.point(point)))
+        got = next(p for p in proj["points"] if p["name"] == point)
+        assert abs(got["u"] - expected[0]) < 1e-2 and abs(got["v"] - expected[1]) < 1e-2
+    before = [engine.projection(pid)["paths"] for pid in ("p0", "p1")]
+    engine.set_session([], ["arm.offset*"], {"torso.q@pose02": readings["pose02"]["torso.q"] + 0.05}, [])
+    after = [engine.projection(pid)["paths"] for pid in ("p0", "p1")]
+    assert after[0] == before[0] and after[1] != before[1]
+
+
+def _tenths_points(paths: dict) -> np.ndarray:
+    xy = [np.asarray(flat, dtype=float).reshape(-1, 2) / 10 for groups in paths.values() for _, flat in groups]
+    return np.concatenate(xy) if xy else np.zeros((0, 2))
+
+
+def test_hidden_edges_are_left_out_of_the_wireframe(small):
+    """A box seen face on: with occlusion only its front face's outline is drawn; without, the
+    back face's edges (inside that outline) are drawn too."""
+    model, photo, out = small
+    engine = Engine(model, [], [("cam", "default", photo)], out)
+    du, dv = 300 * 0.2 / 1.9, 300 * 0.15 / 1.9  # the front face (z = 1.9 m) in pixels
+    every = _tenths_points(engine.projection("p0", occlusion=False)["paths"])
+    seen = _tenths_points(engine.projection("p0", occlusion=True)["paths"])
+    assert len(seen) < len(every)
+    front = (np.abs(np.abs(seen[:, 0] - 159.5) - du) < 0.15) | (np.abs(np.abs(seen[:, 1] - 119.5) - dv) < 0.15)
+    inside = (np.abs(seen[:, 0] - 159.5) <= du + 0.15) & (np.abs(seen[:, 1] - 119.5) <= dv + 0.15)
+    assert np.all(front & inside)
+    back_corner = [159.5 + 300 * 0.2 / 2.1, 119.5 + 300 * 0.15 / 2.1]
+    assert np.min(np.linalg.norm(every - back_corner, axis=1)) < 0.15
+    assert np.min(np.linalg.norm(seen - back_corner, axis=1)) > 2.0
+    points = {p["name"]: p for p in engine.projection("p0")["points"]}
+    assert not any(p["hidden"] for p in points.values())  # the named points are on the front face
