@@ -193,6 +193,14 @@ def robust(loss: Loss | str, scale: float, s: Array) -> tuple[Array, Array]:
     return s, jnp.ones_like(s)
 
 
+def robust_system(loss: Loss | str, scale: float, r: Array, J: Array) -> tuple[Array, Array, Array]:
+    """The robust cost Σρ(r²) and the reweighted residual and Jacobian √ρ'·r, √ρ'·J (iteratively
+    reweighted least squares) that the Marquardt loops, dense and structured, step with."""
+    rho, drho = robust(loss, scale, r * r)
+    w = jnp.sqrt(drho)
+    return jnp.sum(rho), w * r, w[:, None] * J
+
+
 def robust_change(loss: Loss | str, scale: float, r: Array, r_new: Array) -> Array:
     """Σ [ρ(r_new²) − ρ(r²)] computed term by term without cancellation.
 
@@ -450,11 +458,7 @@ def _lm_single(
             # The Jacobian in the local coordinates about x: ∂r(x ⊞ d)/∂d at d = 0.
             return jax.jacfwd(lambda d: (lambda r: (r, r))(local.residual(x, d, *args)), has_aux=True)(zero_step)
 
-    def weighted(r, J):
-        s = r * r
-        rho, drho = robust(loss, scale, s)
-        w = jnp.sqrt(drho)
-        return jnp.sum(rho), w * r, w[:, None] * J
+    weighted = functools.partial(robust_system, loss, scale)
 
     def active_set(x, g):
         """Unknowns on a bound that the gradient pushes outwards (S decreases along −g)."""

@@ -56,7 +56,7 @@ from mbcal.solver import (
     _Identity,
     _solve_spd,
     marquardt_trial,
-    robust,
+    robust_system,
     step_status,
 )
 
@@ -343,11 +343,7 @@ def _lm_structured(
                 jnp.zeros(c)
             )
 
-    def weighted(r, J):
-        s = r * r
-        rho, drho = robust(loss, scale, s)
-        w = jnp.sqrt(drho)
-        return jnp.sum(rho), w * r, w[:, None] * J
+    weighted = functools.partial(robust_system, loss, scale)
 
     def gradient_small(rw, N):
         # ‖J_j‖² is the diagonal of JᵀJ: of U for block unknowns, of V for shared ones.
