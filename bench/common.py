@@ -76,3 +76,19 @@ def publish(text: str, out: str, begin: str, end: str) -> None:
     if out != "-":
         replace_section(Path(out), text, begin, end)
         print(f"\nwrote {out}", file=sys.stderr)
+
+
+def save_figure(fig, path: Path, dpi: int = 110) -> None:
+    """Write a matplotlib figure as a PNG atomically (a temporary file, then a rename)."""
+    tmp = path.with_suffix(".tmp.png")
+    fig.savefig(tmp, dpi=dpi)
+    os.replace(tmp, path)
+
+
+def growth_exponent(sizes, seconds) -> float:
+    """The exponent b of seconds ∝ size^b, fitted over the larger half of the sizes (the asymptote)."""
+    import numpy as np
+
+    xs = np.log(np.asarray(sizes, dtype=float))[len(sizes) // 2 :]
+    ys = np.log(np.asarray(seconds, dtype=float))[len(sizes) // 2 :]
+    return float(np.polyfit(xs, ys, 1)[0]) if len(xs) > 1 else float("nan")

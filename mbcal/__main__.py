@@ -1,7 +1,5 @@
-"""``python -m mbcal`` is the ``mbcal`` command."""
+"""``python -m mbcal`` is the ``mbcal`` command (the same fast exit as the console script)."""
 
-import sys
+from mbcal.cli import entry
 
-from mbcal.cli import main
-
-sys.exit(main())
+entry()

@@ -23,6 +23,7 @@ from mbcal.language.model import Model
 from mbcal.measurements.registry import get_model
 from mbcal.measurements.sets import MeasurementSet, measurements_from_records
 from mbcal.observability import (
+    Observability,
     ObservabilityConfig,
     PointUncertainty,
     analyze,
@@ -35,9 +36,13 @@ from mbcal.results import CalibrationResult, PlanAnalysis, ResidualRow, RunInfo
 from mbcal.solver import SolverConfig, least_squares, random_starts
 from mbcal.structured import (
     DENSE_ANALYSIS_ENTRIES,
+    BlockCovariance,
     Structure,
+    StructuredLinear,
+    compressed_jacobian,
     dense_jacobian,
     least_squares_structured,
+    observability_structured,
     pays,
     square_root_information,
     structure_of,
@@ -103,6 +108,11 @@ class CalibrateOptions:
     accept_poor_fit: bool = False
     """Count an inconsistent or weakly determined fit as ``ok`` (the verdict is still reported):
     for scripts that want the estimate anyway (``--accept-poor-fit``)."""
+    analysis: str = "auto"
+    """How a problem solved by the Schur complement is analysed after the solve (issue 15):
+    ``auto`` densely (the full Jacobian) up to :data:`mbcal.structured.DENSE_ANALYSIS_ENTRIES`
+    entries, from its blocks beyond; ``structured`` from its blocks always; ``dense`` densely always.
+    The blocks give the same report without any n × n or m × n matrix (docs/scale.md)."""
 
     def updated(self, changes: Mapping[str, Any]) -> CalibrateOptions:
         """A copy with some fields changed; an unknown field name is an error that lists the fields."""
@@ -193,7 +203,11 @@ def _jacobian_split(problem: Problem, x: np.ndarray) -> tuple[np.ndarray, np.nda
 
 
 def _point_uncertainties(
-    problem: Problem, x: np.ndarray, covariance: np.ndarray, points: Sequence[str] | None, camera: str | None
+    problem: Problem,
+    x: np.ndarray,
+    covariance: np.ndarray | BlockCovariance,
+    points: Sequence[str] | None,
+    camera: str | None,
 ) -> list[PointUncertainty]:
     model = problem.model
     configs = problem.params.configurations
@@ -212,8 +226,8 @@ def _point_uncertainties(
     if camera is not None:
         camera = model.resolve("camera", camera)
     idx = np.array([model.point_index(p) for p, _ in wanted], dtype=np.int64)
-    cfg_idx = np.array([configs.index(c) for _, c in wanted], dtype=np.int64)
-    P, J = problem.point_jacobian(x, cfg_idx, idx)  # (k, 3), (k, 3, n)
+    position_of = {c: i for i, c in enumerate(configs)}
+    cfg_idx = np.array([position_of[c] for _, c in wanted], dtype=np.int64)
     origins = problem.frame_origins(x)
     items: list[tuple[str, str, str | None]] = []
     eyes: list[np.ndarray | None] = []
@@ -221,9 +235,12 @@ def _point_uncertainties(
         cam = camera or cam or (model.cameras[0].name if model.cameras else None)
         eye = None
         if cam is not None:
-            eye = origins[configs.index(cfg), model.cameras[model.camera_index(cam)].frame]
+            eye = origins[position_of[cfg], model.cameras[model.camera_index(cam)].frame]
         items.append((name, cfg, cam))
         eyes.append(eye)
+    if isinstance(covariance, BlockCovariance):  # a structured problem's: each point from its block (issue 15)
+        return covariance.point_uncertainties(problem, x, cfg_idx, idx, items, eyes)
+    P, J = problem.point_jacobian(x, cfg_idx, idx)  # (k, 3), (k, 3, n)
     return point_uncertainties(items, P, J, covariance, eyes)
 
 
@@ -275,9 +292,7 @@ def _structure(problem: Problem, config: SolverConfig) -> Structure | None:
     The rule (``SolverConfig.structure``): ``dense`` never; ``structured`` always (an error when
     the problem has no block structure or has hard bounds); ``auto`` when the problem has no hard
     bounds and :func:`mbcal.structured.pays`: at least 8 configurations with unknowns of their
-    own (board poses), which outnumber the shared ones.  A structured problem whose m × n
-    Jacobian exceeds :data:`mbcal.structured.DENSE_ANALYSIS_ENTRIES` is refused here (the report
-    analyses it densely); the low-level :mod:`mbcal.structured` API solves and analyses it.
+    own (board poses), which outnumber the shared ones.
     """
     if config.structure == "dense":
         return None
@@ -288,14 +303,20 @@ def _structure(problem: Problem, config: SolverConfig) -> Structure | None:
         raise SolverError(f"the structured solver cannot solve this problem: it {why}", hint="use structure='dense'")
     if structure is None or bounded or not (config.structure == "structured" or pays(structure)):
         return None
-    if structure.m * structure.n > DENSE_ANALYSIS_ENTRIES:
-        raise SolverError(
-            f"{structure.n} unknowns over {structure.m} residual rows is more than calibrate() analyses "
-            f"({DENSE_ANALYSIS_ENTRIES:,} Jacobian entries)",
-            hint="solve it with mbcal.structured.least_squares_structured and analyse it with "
-            "mbcal.structured.analyze_structured (docs/scale.md)",
-        )
     return structure
+
+
+def _check_analysis(analysis: str) -> None:
+    if analysis not in ("auto", "dense", "structured"):
+        raise SolverError(f"analysis must be 'auto', 'dense' or 'structured', got '{analysis}'")
+
+
+def _analysed_by_blocks(structure: Structure | None, analysis: str) -> bool:
+    """Whether the report of a structured solve is computed from the blocks (``CalibrateOptions.analysis``)."""
+    _check_analysis(analysis)
+    if structure is None or analysis == "dense":
+        return False
+    return analysis == "structured" or structure.m * structure.n > DENSE_ANALYSIS_ENTRIES
 
 
 def calibrate(
@@ -321,11 +342,12 @@ def calibrate(
     """
     o = (options or CalibrateOptions()).updated(changes)
     restarts, seed, config, known, priors = o.restarts, o.seed, o.config, o.known, o.priors
-    scale_covariance, points, camera, suggest = o.scale_covariance, o.points, o.camera, o.suggest
-    observability, outlier_threshold, initial, progress = o.observability, o.outlier_threshold, o.initial, o.progress
+    scale_covariance, suggest = o.scale_covariance, o.suggest
+    observability, initial, progress = o.observability, o.initial, o.progress
     t0 = time.perf_counter()
     say = progress or (lambda _msg: None)
     check_size(restarts)
+    _check_analysis(o.analysis)
     problem = Problem(model, measurements, estimate, known=known, priors=priors)
     problem.check_ready()
     params = problem.params
@@ -366,6 +388,13 @@ def calibrate(
         )
     x = solved.x_best
     say("analysing observability")
+    cost = solved.cost_best
+    m_rows = problem.n_residuals
+    provisional_dof = max(m_rows - params.size, 1)
+    chi2 = cost / provisional_dof if scale_covariance else 1.0
+    if _analysed_by_blocks(structure, o.analysis):
+        assert structure is not None
+        return _calibrate_by_blocks(problem, structure, solved, x, x_init, chi2, o, t0, say)
     # once: the observability analysis and the fit verdict share it (structured: from nb + ks tangents)
     if structure is None:
         r, J = problem.residual_and_jacobian(x)
@@ -373,10 +402,6 @@ def calibrate(
         r, J, Jc = dense_jacobian(problem.residual_function, x, structure, args)
     Jm, Jp = J[: problem.size], J[problem.size :]
     rows = _residual_rows(problem, x, r)
-    cost = solved.cost_best
-    m_rows = problem.n_residuals
-    provisional_dof = max(m_rows - params.size, 1)
-    chi2 = cost / provisional_dof if scale_covariance else 1.0
     obs = analyze(
         # structured: an n × n R with RᵀR = JmᵀJm (same spectrum), not the m × n Jacobian (issue 15)
         Jm
@@ -406,9 +431,25 @@ def calibrate(
         observability=observability,
         accept=o.accept_poor_fit,
     )
-    pts = _point_uncertainties(problem, x, obs.covariance, points, camera)
+    return _result(problem, solved, x, x_init, obs, rows, verdict, o, config, t0)
+
+
+def _result(
+    problem: Problem,
+    solved: Any,
+    x: np.ndarray,
+    x_init: np.ndarray,
+    obs: Observability,
+    rows: list,
+    verdict: Any,
+    o: CalibrateOptions,
+    config: SolverConfig,
+    t0: float,
+) -> CalibrationResult:
+    """The result of a calibration, dense or from the blocks: point uncertainties, visibility, timing."""
+    pts = _point_uncertainties(problem, x, obs.covariance, o.points, o.camera)
     visible = problem.visible(x)
-    not_visible = [m.id for m, v in zip(measurements.measurements, visible) if not v]
+    not_visible = [m.id for m, v in zip(problem.measurements.measurements, visible) if not v]
     return CalibrationResult(
         problem=problem,
         solver=solved,
@@ -417,13 +458,57 @@ def calibrate(
         observability=obs,
         residuals=rows,
         points=pts,
-        cost=cost,
+        cost=solved.cost_best,
         rms=_rms(problem, rows),
         elapsed=time.perf_counter() - t0,
-        outlier_threshold=outlier_threshold,
-        run=RunInfo(restarts, seed, config, scale_covariance, tuple(not_visible)),
+        outlier_threshold=o.outlier_threshold,
+        run=RunInfo(o.restarts, o.seed, config, o.scale_covariance, tuple(not_visible)),
         verdict=verdict,
     )
+
+
+def _calibrate_by_blocks(
+    problem: Problem,
+    structure: Structure,
+    solved: Any,
+    x: np.ndarray,
+    x_init: np.ndarray,
+    chi2: float,
+    o: CalibrateOptions,
+    t0: float,
+    say: Callable[[str], None],
+) -> CalibrationResult:
+    """The report of a structured solve from its blocks (issue 15): the same observability analysis,
+    fit verdict and point uncertainties as the dense path, from the compressed Jacobian (m × (nb + ks))
+    — nothing of size n × n or m × n.  Candidate measurements are not ranked here (that needs the
+    dense Jacobian of every candidate)."""
+    params = problem.params
+    r, Jc = compressed_jacobian(problem.residual_function, x, structure, (problem.y, params.known))
+    rows = _residual_rows(problem, x, r)
+    obs = observability_structured(
+        problem,
+        structure,
+        Jc,
+        names=params.names,
+        units=_units(problem),
+        scales=unknown_scales(params),
+        config=o.observability,
+        chi2_scale=chi2,
+    )
+    say("judging the fit")
+    config = o.config or SolverConfig()
+    verdict = assess_fit(
+        problem,
+        r,
+        None,
+        obs,
+        loss=str(config.loss),
+        config=o.fit,
+        observability=o.observability,
+        accept=o.accept_poor_fit,
+        linearize=lambda kept: StructuredLinear(structure, r, Jc, kept),
+    )
+    return _result(problem, solved, x, x_init, obs, rows, verdict, o, config, t0)
 
 
 def simulate(

@@ -41,7 +41,7 @@ usable: for scripts that want the estimate anyway.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -453,6 +453,10 @@ def _weak_directions(
     """Directions of the ranged unknowns whose σ (as a fraction of the search ranges, priors
     included) exceeds ``fraction``, and the condition number of the observable part of the
     covariance (every unknown, scaled as the observability analysis scales them)."""
+    by_blocks = getattr(obs.covariance, "weak_directions", None)
+    if by_blocks is not None:  # a structured problem's covariance (mbcal.structured.BlockCovariance): no n × n matrix
+        found, condition = by_blocks(ranged, fraction, coefficient_tol)
+        return [WeakDirection(names, sigma) for names, sigma in found], condition
     cov = np.asarray(obs.covariance, dtype=float)
     finite = np.isfinite(np.diag(cov))  # the unobservable unknowns' rows and columns are inf
     scales = np.asarray(obs.scales, dtype=float)
@@ -519,7 +523,7 @@ def assess_plan(
 def assess_fit(
     problem: Problem,
     r: np.ndarray,
-    J: np.ndarray,
+    J: np.ndarray | None,
     obs: Observability,
     *,
     loss: str = "linear",
@@ -527,6 +531,7 @@ def assess_fit(
     observability: ObservabilityConfig | None = None,
     accept: bool = False,
     groups: Mapping[str, Sequence[int]] | None = None,
+    linearize: Callable[[np.ndarray], Any] | None = None,
 ) -> FitVerdict:
     """The verdict on a calibration at its estimate.
 
@@ -541,13 +546,18 @@ def assess_fit(
         The solver's loss: with a robust one, the outliers it down-weights are set aside first.
     groups : mapping, optional
         Label → measurement indices (default: :func:`measurement_groups`).
+    linearize : callable, optional
+        rows → the problem linearised on those rows, refitted (``S``, ``dof``, ``deletion``,
+        ``deletions`` as :class:`_Linear`); ``J`` may then be None.  A structured problem's
+        (:class:`mbcal.structured.StructuredLinear`) works from its blocks, without the m × n J.
     """
     config = config or FitConfig()
     alpha = config.threshold
     r = np.asarray(r, dtype=float)
-    J = np.array(J, dtype=float)
-    held = [obs.names.index(name) for name in getattr(obs, "active_bounds", {}) if name in obs.names]
-    J[:, held] = 0.0  # unknowns held at an active hard bound are not refitted
+    if linearize is None:
+        J = np.array(J, dtype=float)
+        held = [obs.names.index(name) for name in getattr(obs, "active_bounds", {}) if name in obs.names]
+        J[:, held] = 0.0  # unknowns held at an active hard bound are not refitted
     ms = problem.measurements.measurements
     ids = [m.id for m in ms]
     blocks = [np.arange(s.start, s.stop) for s in problem.measurement_rows]
@@ -568,8 +578,12 @@ def assess_fit(
         parts = [blocks[i] for i in members]
         return np.concatenate(parts) if parts else np.zeros(0, dtype=np.int64)
 
-    def linear(kept: np.ndarray) -> _Linear:
-        return _Linear(r, J, np.concatenate([rows_of(np.nonzero(kept)[0]), prior_rows]))
+    def linear(kept: np.ndarray) -> Any:
+        rows = np.concatenate([rows_of(np.nonzero(kept)[0]), prior_rows])
+        if linearize is not None:
+            return linearize(rows)
+        assert J is not None
+        return _Linear(r, J, rows)
 
     n_meas = len(ms)
     normalized = np.array([float(np.sqrt(np.sum(r[b] ** 2))) for b in blocks])

@@ -253,17 +253,6 @@ def modeler(
         var, const = entry
         return sm.compose(var, sm.from_constant(const, ir.TRANSFORM))
 
-    def place(frame: int, position: ir.Node) -> tuple:
-        """A point's world position: a constant point goes through the constant offset in numpy."""
-        entry = lazy[frame] if frame >= 0 else None
-        if entry is None:
-            return ev(position)
-        var, const = entry
-        if isinstance(position, ir.Const):
-            local = const[:3, :3] @ np.asarray(position.value, dtype=float) + const[:3, 3]
-            return sm.apply_point(var, tuple(float(v) for v in local))
-        return sm.apply_point(var, sm.apply_point(sm.from_constant(const, ir.TRANSFORM), ev(position)))
-
     # Only frames that are read go into the scene's array; ancestors needed to place points and
     # sensors stay out of it (stacking them would materialise their derivatives for nothing).
     read_frames = set(_selected(needs.frames, len(model.frames)))
@@ -275,31 +264,34 @@ def modeler(
         (0, 4, 4),
     )
 
-    # Points: the constant points of one frame go through its pose as one array operation (the
-    # cost does not grow with their number); points given by expressions are placed one by one.
+    # Points: every point is taken through the constant offset of its frame (numpy for a constant
+    # point), and the points of all frames that share one variable part — a rigid object's frames,
+    # under the parameters that move it — go through it as one array operation: the variable
+    # transform is computed once, and the cost does not grow with the number of points or frames.
     point_list = _selected(needs.points, len(model.points))
-    blocks: list[Any] = []
-    order: list[int] = []
-    by_frame: dict[int, list[int]] = {}
-    constant_at: dict[int, np.ndarray] = {}  # point index -> its constant position
+    groups: dict[int, tuple[sm.Transform, list[np.ndarray], list[Any], list[int], list[int]]] = {}
     for i in point_list:
         p = model.points[i]
+        entry = lazy[p.frame] if p.frame >= 0 else None
+        var, const = entry if entry is not None else (sm.IDENTITY, np.eye(4))
+        group = groups.setdefault(id(var), (var, [], [], [], []))
         if isinstance(p.position, ir.Const):
-            by_frame.setdefault(p.frame, []).append(i)
-            constant_at[i] = np.asarray(p.position.value, dtype=float)
+            group[1].append(const[:3, :3] @ np.asarray(p.position.value, dtype=float) + const[:3, 3])
+            group[3].append(i)
         else:
-            blocks.append(sm.stack_scalars(place(p.frame, p.position))[None, :])
-            order.append(i)
-    for owner, members in by_frame.items():
-        positions = np.stack([constant_at[i] for i in members])
-        entry = lazy[owner] if owner >= 0 else None
-        if entry is not None:
-            var, const = entry
-            positions = positions @ const[:3, :3].T + const[:3, 3]
-        else:
-            var = sm.IDENTITY
-        blocks.append(sm.stack_scalars(sm.apply_point(var, tuple(positions[:, k] for k in range(3)))))
-        order.extend(members)
+            group[2].append(sm.apply_point(sm.from_constant(const, ir.TRANSFORM), ev(p.position)))
+            group[4].append(i)
+    blocks: list[Any] = []
+    order: list[int] = []
+    for var, constant, expressions, constant_index, expression_index in groups.values():
+        columns = []
+        for k in range(3):
+            parts = [np.asarray([c[k] for c in constant], dtype=float)] if constant else []
+            if expressions:
+                parts.append(sm.stack_scalars([e[k] for e in expressions]))
+            columns.append(parts[0] if len(parts) == 1 else jnp.concatenate(parts))
+        blocks.append(sm.stack_scalars(sm.apply_point(var, tuple(columns))))
+        order.extend(constant_index + expression_index)
     if not blocks:
         points = jnp.zeros((len(model.points), 3))
     else:

@@ -134,9 +134,11 @@ class Observability:
     condition: float
     unobservable: list[Combination]
     weak: list[Combination]
-    covariance: np.ndarray  # SI units; inf rows/columns for unobservable unknowns
+    # SI units; inf rows/columns for unobservable unknowns: an np.ndarray, or for a large structured
+    # problem a mbcal.structured.BlockCovariance (entries on request, never n × n)
+    covariance: Any
     std: np.ndarray
-    correlation: np.ndarray
+    correlation: Any  # np.ndarray, or the BlockCovariance of the correlations
     chi2_scale: float = 1.0
     suggestions: list[Suggestion] = field(default_factory=list)
     null_space: np.ndarray | None = None  # (n, k) scaled
@@ -517,34 +519,40 @@ def point_uncertainty(
 def point_uncertainties(
     points: Sequence[tuple[str, str, str | None]],
     positions: np.ndarray,
-    J_points: np.ndarray,
-    covariance: np.ndarray,
+    J_points: np.ndarray | None,
+    covariance: np.ndarray | None,
     eyes: Sequence[np.ndarray | None],
+    *,
+    covariances: np.ndarray | None = None,
 ) -> list[PointUncertainty]:
     """:func:`point_uncertainty` for many points at once: ``points`` (name, configuration, camera),
     positions (k, 3), Jacobians (k, 3, n), eyes (k entries, None: no line of sight).
+    ``covariances`` (k, 3, 3): the points' covariances already propagated (a structured problem's,
+    issue 15); then ``J_points`` and ``covariance`` are not used.
 
     Points whose Jacobians use the same unknowns are propagated together (one batched product
     per pattern, e.g. per view of a target), and the line-of-sight split is batched too."""
     k = len(points)
     if k == 0:
         return []
-    J = np.asarray(J_points, dtype=float)
     P = np.asarray(positions, dtype=float)
-    used = np.any(J != 0, axis=1)  # (k, n)
-    covs = np.empty((k, 3, 3))
-    patterns: dict[bytes, list[int]] = {}
-    for i in range(k):
-        patterns.setdefault(used[i].tobytes(), []).append(i)
-    for members in patterns.values():
-        idx = np.asarray(members)
-        mask = used[idx[0]]
-        block = covariance[np.ix_(mask, mask)]
-        if not np.all(np.isfinite(block)):
-            covs[idx] = np.inf
-        else:
-            Ju = J[idx][:, :, mask]
-            covs[idx] = Ju @ block @ np.swapaxes(Ju, 1, 2)
+    covs = np.empty((k, 3, 3)) if covariances is None else np.asarray(covariances, dtype=float)
+    if covariances is None:
+        assert covariance is not None and J_points is not None
+        J = np.asarray(J_points, dtype=float)
+        used = np.any(J != 0, axis=1)  # (k, n)
+        patterns: dict[bytes, list[int]] = {}
+        for i in range(k):
+            patterns.setdefault(used[i].tobytes(), []).append(i)
+        for members in patterns.values():
+            idx = np.asarray(members)
+            mask = used[idx[0]]
+            block = covariance[np.ix_(mask, mask)]
+            if not np.all(np.isfinite(block)):
+                covs[idx] = np.inf
+            else:
+                Ju = J[idx][:, :, mask]
+                covs[idx] = Ju @ block @ np.swapaxes(Ju, 1, 2)
     par = np.full(k, np.inf)
     perp = np.full(k, np.inf)
     finite = np.all(np.isfinite(covs), axis=(1, 2))

@@ -294,7 +294,10 @@ class LocalParameterisation(Protocol):
     """
 
     def residual(self, x: Array, d: Array, *args: Array) -> Array:
-        """The residual at x ⊞ d, differentiable in d at d = 0 (``args`` as for ``fun``)."""
+        """The residual at x ⊞ d, differentiable in d at d = 0 (``args`` as for ``fun``).
+
+        The solver evaluates it only at d = 0 (its value and its Jacobian in d there), so it may
+        agree with ``r(plus(x, d))`` to first order only, where that is cheaper."""
         ...
 
     def plus(self, x: Array, d: Array) -> Array:

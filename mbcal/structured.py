@@ -47,6 +47,15 @@ from mbcal._jax import jax, jnp, to_device
 from mbcal.cache import Hasher, exported
 from mbcal.datasets.bal import BalProblem
 from mbcal.errors import SolverError
+from mbcal.modeling import Needs
+from mbcal.observability import (
+    Observability,
+    ObservabilityConfig,
+    PointUncertainty,
+    _combination,
+    _sparse_basis,
+    point_uncertainties,
+)
 from mbcal.problem import Problem
 from mbcal.solver import (
     LeastSquaresResult,
@@ -76,6 +85,9 @@ __all__ = [
     "square_root_information",
     "compressed_jacobian",
     "check_structure",
+    "BlockCovariance",
+    "StructuredLinear",
+    "observability_structured",
 ]
 
 STRUCTURED_MIN_BLOCKS = 8
@@ -658,6 +670,16 @@ def _pinv_sym(M: np.ndarray, rtol: float) -> tuple[np.ndarray, int, np.ndarray]:
     return inv_s / dn[:, None] / dn[None, :], int(keep.sum()), null
 
 
+def _segment_products(A: np.ndarray, C: np.ndarray, segment: np.ndarray, count: int) -> np.ndarray:
+    """(count, a, c): Σ over the rows of each segment of A_iᵀ C_i, one weighted count per entry
+    (memory of one column, not of the (m, a, c) products)."""
+    out = np.empty((count, A.shape[1], C.shape[1]))
+    for i in range(A.shape[1]):
+        for j in range(C.shape[1]):
+            out[:, i, j] = np.bincount(segment, weights=A[:, i] * C[:, j], minlength=count)
+    return out
+
+
 def analyze_structured(
     fun: Callable[..., Array],
     x: Array,
@@ -679,12 +701,9 @@ def analyze_structured(
     ix = structure.arrays()
     P = len(ix["pair_block"])
     Jb, Js = Jc[:, :nb], Jc[:, nb:]
-    U = np.zeros((B, nb, nb))
-    np.add.at(U, structure.row_block, Jb[:, :, None] * Jb[:, None, :])
-    V = np.zeros((G, ks, ks))
-    np.add.at(V, structure.row_group, Js[:, :, None] * Js[:, None, :])
-    W = np.zeros((P, nb, ks))
-    np.add.at(W, ix["row_pair"], Jb[:, :, None] * Js[:, None, :])
+    U = _segment_products(Jb, Jb, structure.row_block, B)
+    V = _segment_products(Js, Js, structure.row_group, G)
+    W = _segment_products(Jb, Js, ix["row_pair"], P)
     names = list(structure.names) if structure.names is not None else [f"x[{j}]" for j in range(structure.n)]
     unobservable: list[dict[str, Any]] = []
     U_pinv = np.zeros_like(U)
@@ -777,6 +796,572 @@ def square_root_information(Jc: np.ndarray, row_block: np.ndarray, structure: St
 
 DENSE_ANALYSIS_ENTRIES = 40_000_000
 """The largest m × n Jacobian (320 MB) that :func:`mbcal.calibrate` analyses densely after a
-structured solve (the full report: rank, covariance, fit verdict, point uncertainties); larger
-problems are solved with :func:`least_squares_structured` and analysed with
-:func:`analyze_structured`."""
+structured solve (``CalibrateOptions.analysis="auto"``); beyond it the report (rank, covariance,
+fit verdict, point uncertainties) is computed from the blocks (:func:`observability_structured`,
+:class:`StructuredLinear`), without any n × n or m × n matrix."""
+
+
+# ---- the report's analysis without the full matrix (calibrate at scale) ------------------------------
+#
+# Beyond DENSE_ANALYSIS_ENTRIES, `calibrate` analyses a structured problem (one group of shared
+# unknowns) from its compressed Jacobian: (JᵀJ)⁺ by blocks, the covariance as a lazy
+# `BlockCovariance`, extreme eigenvalues by Lanczos iterations, and the fit verdict's linear algebra
+# (refit residuals, leverages, deletion statistics) from the same pieces.
+
+_LANCZOS_DENSE = 64  # below this many unknowns an operator is formed and decomposed exactly
+
+
+def _column_scales(structure: Structure, row_block: np.ndarray, scales: np.ndarray) -> np.ndarray:
+    """(m, nb + ks) the scale of each compressed column for each row."""
+    return np.concatenate(
+        [
+            scales[structure.blocks][row_block],
+            np.broadcast_to(scales[structure.shared[0]], (len(row_block), structure.ks)),
+        ],
+        axis=1,
+    )
+
+
+class _BlockFactor:
+    """(JᵀJ)⁺ of the rows of a compressed Jacobian with one shared group, by blocks (without
+    forming JᵀJ, so that rank decisions see J's singular values, not their squares):
+
+    - each block's rows J_b = P Σ Qᵀ (a batched SVD of the rows padded per block): U_b⁺ = Q Σ⁻² Qᵀ
+      over the singular values above ``rtol · smax``, the block's own null directions Q₀;
+    - the shared remainder Z = (I − P Pᵀ) J_s stacked over the blocks, whose SVD gives
+      S = ZᵀZ = V − Σ W_bᵀ U_b⁺ W_b (the reduced system) and S⁺, and Y_b = U_b⁺ W_b.
+
+    ``solve`` applies the generalised inverse C = [[U⁺ + Y S⁺ Yᵀ, −Y S⁺], [−S⁺ Yᵀ, S⁺]] (the
+    inverse when J has full rank; with the null space projected out, the pseudo-inverse)."""
+
+    def __init__(self, Jc: np.ndarray, row_block: np.ndarray, B: int, nb: int, rtol: float, exact: bool = False):
+        """``exact``: judge the rank relative to J's largest singular value (Lanczos iterations on
+        JᵀJ), as the dense analysis does; otherwise relative to the largest of the blocks' and the
+        reduced system's."""
+        m, c = Jc.shape
+        ks = c - nb
+        self.B, self.nb, self.ks = B, nb, ks
+        counts = np.bincount(row_block, minlength=B)
+        L = max(int(counts.max()) if m else 0, 1)
+        order = np.argsort(row_block, kind="stable")
+        first = np.concatenate([[0], np.cumsum(counts)])[:-1]
+        sorted_blocks = row_block[order]
+        within = np.arange(m) - first[sorted_blocks]
+        table = np.zeros((B, L, c))
+        table[sorted_blocks, within] = Jc[order]
+        if L < nb:  # the thin SVD needs at least nb rows: zero rows change nothing
+            table = np.concatenate([table, np.zeros((B, nb - L, c))], axis=1)
+        self.table = table
+        P, sb, Qt = np.linalg.svd(table[:, :, :nb], full_matrices=False)  # (B, L, nb), (B, nb), (B, nb, nb)
+        Zs = table[:, :, nb:]
+        top = float(sb.max()) if sb.size else 0.0
+        smax = top
+        if exact:
+            w, _ = _largest_eigenvalues(self._information, B * nb + ks)
+            smax = float(np.sqrt(max(w[-1], 0.0)))
+        self.smax = smax
+        keep = sb > rtol * max(smax, 1e-300)
+        inv = np.where(keep, 1.0 / np.where(keep, sb, 1.0), 0.0)
+        Pk = P * keep[:, None, :]
+        PtJs = np.einsum("bli,blk->bik", Pk, Zs)  # (B, nb, ks): P_kᵀ J_s
+        Z = Zs - np.einsum("bli,bik->blk", Pk, PtJs)  # the shared remainder per block
+        Q = np.swapaxes(Qt, 1, 2)
+        self.Uinv = np.einsum("bij,bj,bkj->bik", Q, inv * inv, Q)
+        self.Y = np.einsum("bij,bj,bjk->bik", Q, inv, PtJs)  # U_b⁺ W_b
+        _, ss, Vt_s = (
+            np.linalg.svd(Z.reshape(-1, ks), full_matrices=False) if ks else (None, np.zeros(0), np.zeros((0, 0)))
+        )
+        keep_s = ss > rtol * max(smax, 1e-300)
+        Vs = Vt_s.T
+        self.Sinv = (Vs[:, keep_s] / ss[keep_s] ** 2) @ Vs[:, keep_s].T
+        self.shared_null = Vs[:, ~keep_s]  # (ks, k0)
+        self.block_null = [(b, Q[b][:, ~keep[b]]) for b in np.nonzero(~keep.all(axis=1))[0]]
+        self.rank = int(keep.sum() + keep_s.sum())
+
+    def _information(self, v: np.ndarray) -> np.ndarray:
+        """JᵀJ v for v = (all blocks' unknowns, then the shared ones), from the padded rows."""
+        nb = self.nb
+        vb, vs = v[: self.B * nb].reshape(self.B, nb), v[self.B * nb :]
+        Tb, Ts = self.table[:, :, :nb], self.table[:, :, nb:]
+        u = np.einsum("blk,bk->bl", Tb, vb) + Ts @ vs
+        return np.concatenate([np.einsum("blk,bl->bk", Tb, u).ravel(), np.einsum("blk,bl->k", Ts, u)])
+
+    def solve(self, vb: np.ndarray, vs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """C·v for v = (vb (B, nb, …), vs (ks, …)) (several right-hand sides along the last axes)."""
+        xs = np.tensordot(self.Sinv, vs - np.einsum("bik,bi...->k...", self.Y, vb), axes=1)
+        xb = np.einsum("bij,bj...->bi...", self.Uinv, vb) - np.einsum("bik,k...->bi...", self.Y, xs)
+        return xb, xs
+
+    def null_vectors(self, structure: Structure) -> np.ndarray:
+        """(n, k) the null directions of J, orthonormal: each block's own, then the shared ones with
+        the blocks following them (δ_b = −Y_b δ_s)."""
+        n = structure.n
+        out = []
+        for b, N in self.block_null:
+            for k in range(N.shape[1]):
+                v = np.zeros(n)
+                v[structure.blocks[b]] = N[:, k]
+                out.append(v)
+        for k in range(self.shared_null.shape[1]):
+            v = np.zeros(n)
+            ds = self.shared_null[:, k]
+            v[structure.shared[0]] = ds
+            v[structure.blocks] = -self.Y @ ds
+            out.append(v)
+        if not out:
+            return np.zeros((n, 0))
+        Qn, _ = np.linalg.qr(np.stack(out, axis=1))
+        return Qn
+
+
+def _apply_rows(structure: Structure, Jc: np.ndarray, row_block: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """J v for the rows of a compressed Jacobian (one shared group)."""
+    nb = structure.nb
+    return np.einsum("ij,ij->i", Jc[:, :nb], v[structure.blocks][row_block]) + Jc[:, nb:] @ v[structure.shared[0]]
+
+
+def _apply_rows_t(structure: Structure, Jc: np.ndarray, row_block: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Jᵀ u for the rows of a compressed Jacobian (one shared group)."""
+    nb = structure.nb
+    out = np.zeros(structure.n)
+    gb = np.stack([np.bincount(row_block, weights=Jc[:, k] * u, minlength=structure.n_blocks) for k in range(nb)], 1)
+    out[structure.blocks] = gb
+    out[structure.shared[0]] = Jc[:, nb:].T @ u
+    return out
+
+
+def _largest_eigenvalues(
+    matvec: Callable[[np.ndarray], np.ndarray], n: int, k: int = 1
+) -> tuple[np.ndarray, np.ndarray]:
+    """The k largest eigenvalues (ascending) and eigenvectors of a symmetric operator: exactly for
+    small n, else by Lanczos iterations to round-off (ARPACK)."""
+    k = max(1, min(k, n))
+    if n <= _LANCZOS_DENSE or k >= n - 1:
+        M = np.stack([matvec(e) for e in np.eye(n)], axis=1)
+        w, V = np.linalg.eigh(0.5 * (M + M.T))
+        return w[-k:], V[:, -k:]
+    from scipy.sparse.linalg import LinearOperator, eigsh  # heavy third-party import, needed only here
+
+    op = LinearOperator((n, n), matvec=matvec, dtype=float)
+    v0 = np.cos(np.arange(n) * 0.7) + 1.5  # deterministic start
+    w, V = eigsh(op, k=k, which="LA", v0=v0, tol=0)
+    order = np.argsort(w)
+    return w[order], V[:, order]
+
+
+class BlockCovariance:
+    """The covariance (n × n) of a block-structured problem's unknowns, never formed.
+
+    Entry (i, j) is computed on request from the blocks: U_b⁺ when both lie in block b, plus
+    q_iᵀ S⁺ q_j with q = Y_b's row for a block unknown and −e for a shared one; scaled back to SI
+    units and by ``chi2_scale``; inf in the rows and columns of unknowns that an unobservable
+    direction moves.  Indexing (``cov[i, j]``, ``cov[np.ix_(a, b)]``), ``diagonal()``, rows and
+    ``np.asarray(cov)`` (which forms the whole matrix: for small problems only) work as for an
+    array; ``correlation()`` is the same for the correlation matrix.
+    """
+
+    def __init__(
+        self,
+        factor: _BlockFactor,
+        structure: Structure,
+        scales: np.ndarray,
+        chi2_scale: float,
+        infinite: np.ndarray,
+        names: Sequence[str],
+        normalized: bool = False,
+    ):
+        self._f = factor
+        self.structure = structure
+        self.scales = np.asarray(scales, dtype=float)
+        self.chi2_scale = float(chi2_scale)
+        self.infinite = np.asarray(infinite, dtype=bool)
+        self.names = list(names)
+        self.normalized = normalized
+        n = structure.n
+        self.shape = (n, n)
+        self.ndim = 2
+        self.dtype = np.dtype(float)
+        block, _ = structure.block_of_unknown()
+        self._block = block
+        pos = np.zeros(n, dtype=np.int64)
+        pos[structure.blocks] = np.arange(structure.nb)[None, :]
+        pos[structure.shared[0]] = np.arange(structure.ks)
+        self._pos = pos
+        q = np.zeros((n, structure.ks))
+        q[structure.blocks] = factor.Y
+        q[structure.shared[0], np.arange(structure.ks)] = -1.0
+        self._q = q
+        self._std: np.ndarray | None = None
+        self._information_max: float | None = None  # λmax of the scaled JᵀJ (priors included)
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def _raw(self, I: np.ndarray, J: np.ndarray) -> np.ndarray:
+        """Scaled covariance entries for broadcast index arrays I, J (no χ², no SI scales)."""
+        I, J = np.broadcast_arrays(I, J)
+        out = np.einsum("...k,kl,...l->...", self._q[I], self._f.Sinv, self._q[J])
+        bi, bj = self._block[I], self._block[J]
+        same = (bi == bj) & (bi >= 0)
+        out[same] += self._f.Uinv[bi[same], self._pos[I][same], self._pos[J][same]]
+        return out
+
+    def _entries(self, I: np.ndarray, J: np.ndarray) -> np.ndarray:
+        I, J = np.broadcast_arrays(np.asarray(I, dtype=np.int64), np.asarray(J, dtype=np.int64))
+        out = self._raw(I, J) * self.scales[I] * self.scales[J] * self.chi2_scale
+        bad = self.infinite[I] | self.infinite[J]
+        if self.normalized:
+            std = self.std()
+            with np.errstate(invalid="ignore", divide="ignore"):
+                out = out / (std[I] * std[J])
+            out = np.where(bad | ~np.isfinite(out), np.nan, out)
+            return np.where((I == J) & ~bad, 1.0, out)
+        return np.where(bad, np.inf, out)
+
+    def diagonal(self) -> np.ndarray:
+        if self.normalized:
+            return np.where(self.infinite, np.nan, 1.0)
+        i = np.arange(self.shape[0])
+        return self._entries(i, i)
+
+    def std(self) -> np.ndarray:
+        """σ of every unknown (SI units; inf where unobservable)."""
+        if self._std is None:
+            i = np.arange(self.shape[0])
+            d = self._raw(i, i) * self.scales**2 * self.chi2_scale
+            self._std = np.where(self.infinite, np.inf, np.sqrt(np.clip(d, 0, None)))
+        return self._std
+
+    def correlation(self) -> BlockCovariance:
+        twin = BlockCovariance(self._f, self.structure, self.scales, self.chi2_scale, self.infinite, self.names, True)
+        twin._std = self.std()
+        return twin
+
+    def __getitem__(self, key: Any) -> Any:
+        n = self.shape[0]
+        if not isinstance(key, tuple):
+            key = (key, slice(None))
+        a, b = key
+        if isinstance(a, slice):
+            a = np.arange(n)[a]
+        if isinstance(b, slice):
+            b = np.arange(n)[b]
+        a, b = np.asarray(a), np.asarray(b)
+        if a.dtype == bool:
+            a = np.nonzero(a)[0]
+        if b.dtype == bool:
+            b = np.nonzero(b)[0]
+        if a.ndim == 1 and b.ndim == 1:  # cov[a, b] of two lists: the outer block, as np.ix_ would
+            return self._entries(a[:, None], b[None, :])
+        out = self._entries(a, b)
+        return out if out.ndim else float(out)
+
+    def __iter__(self):
+        n = self.shape[0]
+        for i in range(n):
+            yield self._entries(np.full(n, i), np.arange(n))
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
+        i = np.arange(self.shape[0])
+        out = self._entries(i[:, None], i[None, :])
+        return out if dtype is None else out.astype(dtype)
+
+    def joint(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each block's unknowns with the shared ones (B, nb + ks) and their covariance (B, c, c)."""
+        s = self.structure
+        idx = np.concatenate([s.blocks, np.broadcast_to(s.shared[0], (s.n_blocks, s.ks))], axis=1)
+        f = self._f
+        YS = f.Y @ f.Sinv  # (B, nb, ks)
+        top = np.concatenate([f.Uinv + YS @ np.swapaxes(f.Y, 1, 2), -YS], axis=2)
+        bottom = np.concatenate([-np.swapaxes(YS, 1, 2), np.broadcast_to(f.Sinv, (s.n_blocks, s.ks, s.ks))], axis=2)
+        C = np.concatenate([top, bottom], axis=1)
+        sc = self.scales[idx]
+        C = C * sc[:, :, None] * sc[:, None, :] * self.chi2_scale
+        bad = self.infinite[idx]
+        C = np.where(bad[:, :, None] | bad[:, None, :], np.inf, C)
+        return idx, C
+
+    def weak_directions(
+        self, ranged: np.ndarray, fraction: float, coefficient_tol: float
+    ) -> tuple[list[tuple[tuple[str, ...], float]], float]:
+        """:func:`mbcal.fit._weak_directions` without the n × n matrix: the directions of the ranged
+        unknowns whose σ exceeds ``fraction`` of their search ranges, and the condition number of
+        the observable part of the covariance (scaled by the unknowns' natural scales)."""
+        finite = ~self.infinite
+        n = self.shape[0]
+        condition = 1.0
+        if finite.any():
+            idx = np.nonzero(finite)[0]
+
+            def cov_scaled(v: np.ndarray) -> np.ndarray:
+                full = np.zeros(n)
+                full[idx] = v
+                return self._apply(full)[idx] * self.chi2_scale
+
+            big, _ = _largest_eigenvalues(cov_scaled, len(idx))
+            small = self._smallest(idx)
+            condition = float(np.sqrt(big[-1] / small)) if big[-1] > 0 and small > 0 else 1.0
+        use = finite & np.asarray(ranged, dtype=bool)
+        out: list[tuple[tuple[str, ...], float]] = []
+        if not use.any():
+            return out, condition
+        u = np.nonzero(use)[0]
+        width = 2.0 * self.scales[u]
+        if len(u) <= 2000:  # few ranged unknowns (the intrinsics): their block exactly, as the dense path
+            Cs = self[u, u] / np.outer(width, width)
+            lam, V = np.linalg.eigh((Cs + Cs.T) / 2)
+        else:
+
+            def ranged_scaled(v: np.ndarray) -> np.ndarray:
+                full = np.zeros(n)
+                full[u] = v / width * self.scales[u]
+                return self._apply(full)[u] * self.scales[u] / width * self.chi2_scale
+
+            k = 8
+            while True:
+                lam, V = _largest_eigenvalues(ranged_scaled, len(u), k)
+                if lam[0] <= fraction**2 or k >= len(u) - 2 or k >= 256:
+                    break
+                k *= 2
+        names = [self.names[j] for j in u]
+        for k in np.argsort(-lam):
+            sigma = float(np.sqrt(max(lam[k], 0.0)))
+            if not sigma > fraction:
+                break
+            v = V[:, k]
+            big_c = np.max(np.abs(v))
+            order = [j for j in np.argsort(-np.abs(v)) if abs(v[j]) >= coefficient_tol * big_c]
+            out.append((tuple(names[j] for j in order), sigma))
+        return out, condition
+
+    def _apply(self, v: np.ndarray) -> np.ndarray:
+        """The scaled covariance (no χ²) times v (n,): C v by the blocks."""
+        s = self.structure
+        xb, xs = self._f.solve(v[s.blocks], v[s.shared[0]])
+        out = np.zeros(self.shape[0])
+        out[s.blocks] = xb
+        out[s.shared[0]] = xs
+        return out
+
+    def _smallest(self, idx: np.ndarray) -> float:
+        """The smallest eigenvalue of the scaled covariance over ``idx``: χ² / λmax of the information
+        matrix — exact when every unknown is observable.  Otherwise (``idx`` the observable ones)
+        the covariance over them is the inverse of a Schur complement of the information matrix,
+        whose largest eigenvalue is at most λmax: the value is then a lower bound, and the condition
+        number an upper bound (never flattering; Lanczos iterations at that end of the spectrum of
+        the covariance need not converge)."""
+        top = self._information_max
+        return float(self.chi2_scale / top) if top is not None and top > 0 else 0.0
+
+    def point_uncertainties(
+        self,
+        problem: Problem,
+        x: np.ndarray,
+        cfg_idx: np.ndarray,
+        idx: np.ndarray,
+        items: Sequence[tuple[str, str, str | None]],
+        eyes: Sequence[np.ndarray | None],
+    ) -> list[PointUncertainty]:
+        """:func:`mbcal.observability.point_uncertainties` from each point's compressed Jacobian
+        (its configuration's block and the shared unknowns: nb + ks tangents, not n)."""
+        if not len(items):
+            return []
+        s = self.structure
+        wanted = Needs(points=frozenset(int(p) for p in idx))
+        slot = to_device(s.arrays()["slot"])
+        c = s.nb + s.ks
+
+        def positions(dc, xx, known):
+            return problem.scenes(xx + dc[slot], known, wanted).points[cfg_idx, idx]
+
+        program = jax.jit(
+            lambda xx, known: (positions(jnp.zeros(c), xx, known), jax.jacfwd(positions)(jnp.zeros(c), xx, known))
+        )
+        P, Jp = (np.asarray(a) for a in program(to_device(x, float), to_device(problem.params.known)))
+        _, joint = self.joint()  # (B, c, c): point k's unknowns are its block's and the shared ones
+        used = np.any(Jp != 0, axis=1)  # (k, c)
+        bad = ~np.isfinite(np.diagonal(joint, axis1=1, axis2=2))  # (B, c): the unobservable unknowns
+        finite = np.where(np.isfinite(joint), joint, 0.0)
+        covs = np.empty((len(items), 3, 3))
+        for a in range(0, len(items), 8192):  # in chunks: the gathered (k, c, c) would be large
+            k = slice(a, a + 8192)
+            covs[k] = np.einsum("kic,kcd,kjd->kij", Jp[k], finite[cfg_idx[k]], Jp[k])
+        covs[np.any(used & bad[cfg_idx], axis=1)] = np.inf
+        return point_uncertainties(items, P, None, None, eyes, covariances=covs)
+
+
+class StructuredLinear:
+    """The problem linearised at the estimate and refitted on a subset of its rows, from the
+    compressed Jacobian (the fit verdict's linear algebra, :class:`mbcal.fit._Linear`, without the
+    m × n matrix): refit residuals, and the leverages J_B (JᵀJ)⁺ J_Bᵀ of any rows B from the
+    blocks, a_iᵀ U_b⁺ a_j (rows of one block) + z_iᵀ S⁺ z_j with z = s − Y_bᵀ a."""
+
+    _GROUP_ROWS = 3000  # larger groups are deleted in the unknowns' space (a second factorisation)
+
+    def __init__(self, structure: Structure, r: np.ndarray, Jc: np.ndarray, rows: np.ndarray, rtol: float = 1e-10):
+        self.structure = structure
+        self.r, self.Jc = r, Jc
+        self.rows = np.asarray(rows, dtype=np.int64)
+        rb = structure.row_block[self.rows]
+        Jk = Jc[self.rows]
+        nb = structure.nb
+        self._rtol = rtol
+        self.f = _BlockFactor(Jk, rb, structure.n_blocks, nb, rtol)
+        self.rank = self.f.rank
+        rk = r[self.rows]
+        g = _apply_rows_t(structure, Jk, rb, rk)
+        xb, xs = self.f.solve(g[structure.blocks], g[structure.shared[0]])
+        step = np.zeros(structure.n)
+        step[structure.blocks], step[structure.shared[0]] = xb, xs
+        self.res = rk - _apply_rows(structure, Jk, rb, step)
+        self.S = float(self.res @ self.res)
+        self.position = np.full(r.shape[0], -1, dtype=np.int64)
+        self.position[self.rows] = np.arange(len(self.rows))
+        self._a = Jk[:, :nb]
+        self._z = Jk[:, nb:] - np.einsum("bik,bi->bk", self.f.Y[rb], Jk[:, :nb])
+        self._rb = rb
+
+    @property
+    def dof(self) -> int:
+        return len(self.rows) - self.rank
+
+    def _hat(self, pos: np.ndarray) -> np.ndarray:
+        """J_B (JᵀJ)⁺ J_Bᵀ for kept-row positions ``pos`` (…, size): (…, size, size)."""
+        a, z, b = self._a[pos], self._z[pos], self._rb[pos]
+        Ua = np.einsum("...ij,...j->...i", self.f.Uinv[b], a)
+        same = b[..., :, None] == b[..., None, :]
+        return np.einsum("...ik,...jk->...ij", Ua, a) * same + np.einsum("...ik,kl,...jl->...ij", z, self.f.Sinv, z)
+
+    def deletions(self, blocks: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """How much S drops when each block of rows alone is set aside (and its degrees of freedom)."""
+        t = np.zeros(len(blocks))
+        d = np.zeros(len(blocks), dtype=np.int64)
+        by_size: dict[int, list[int]] = {}
+        for k, blk in enumerate(blocks):
+            by_size.setdefault(len(blk), []).append(k)
+        for size, members in by_size.items():
+            if size == 0:
+                continue
+            pos = self.position[np.stack([blocks[k] for k in members])]
+            t[members], d[members] = self._drop(pos)
+        return t, d
+
+    def _drop(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        rB = self.res[pos]
+        A = np.eye(pos.shape[-1]) - self._hat(pos)
+        w, V = np.linalg.eigh(A)
+        good = w > 1e-9
+        inv = np.where(good, 1.0 / np.where(good, w, 1.0), 0.0)
+        proj = np.einsum("...ij,...i->...j", V, rB)
+        return np.sum(inv * proj**2, axis=-1), np.sum(good, axis=-1)
+
+    def deletion(self, block_rows: np.ndarray) -> tuple[float, int]:
+        """How much S drops when these rows are also set aside, and the degrees of freedom of it."""
+        pos = self.position[np.asarray(block_rows, dtype=np.int64)]
+        pos = pos[pos >= 0]
+        if pos.size == 0:
+            return 0.0, 0
+        if pos.size <= self._GROUP_ROWS:
+            drop, dof = self._drop(pos)
+            return float(drop), int(dof)
+        # In the unknowns' space: S − S₋B = e_Bᵀe_B + gᵀ (A − J_BᵀJ_B)⁺ g with g = J_Bᵀ e_B.
+        s = self.structure
+        rest = np.setdiff1d(self.rows, self.rows[pos])
+        eB = self.res[pos]
+        g = _apply_rows_t(s, self.Jc[self.rows[pos]], s.row_block[self.rows[pos]], eB)
+        other = _BlockFactor(self.Jc[rest], s.row_block[rest], s.n_blocks, s.nb, self._rtol)
+        xb, xs = other.solve(g[s.blocks], g[s.shared[0]])
+        t = float(eB @ eB + g[s.blocks].ravel() @ xb.ravel() + g[s.shared[0]] @ xs)
+        return t, int(pos.size - (self.rank - other.rank))
+
+
+def observability_structured(
+    problem: Problem,
+    structure: Structure,
+    Jc: np.ndarray,
+    *,
+    names: Sequence[str],
+    units: dict[str, str],
+    scales: np.ndarray,
+    config: ObservabilityConfig | None = None,
+    chi2_scale: float = 1.0,
+) -> Observability:
+    """:func:`mbcal.observability.analyze` of a structured problem (one shared group) from its
+    compressed Jacobian ``Jc`` (measurement rows, then prior rows): the same rank, named
+    unobservable and weak directions, condition number and covariance, without the n × n matrix.
+    The covariance is a :class:`BlockCovariance`; ``singular_values`` holds only the largest and
+    the smallest nonzero singular value of the scaled Jacobian (Lanczos iterations, not an SVD)."""
+    if structure.n_groups != 1:
+        raise SolverError("the structured analysis needs one group of shared unknowns")
+    config = config or ObservabilityConfig()
+    n = structure.n
+    S = np.asarray(scales, dtype=float)
+    rb = structure.row_block
+    Jcs = Jc * _column_scales(structure, rb, S)
+    size = problem.size
+    Jm, rbm = Jcs[:size], rb[:size]
+
+    fm = _BlockFactor(Jm, rbm, structure.n_blocks, structure.nb, config.rtol, exact=True)
+    smax = fm.smax
+    null = fm.null_vectors(structure)
+    rank = fm.rank
+    has_priors = Jcs.shape[0] > size
+    if has_priors:
+        ft = _BlockFactor(Jcs, rb, structure.n_blocks, structure.nb, config.rtol, exact=True)
+        null_t = ft.null_vectors(structure)
+    else:
+        ft, null_t = fm, null
+
+    def pinv(factor: _BlockFactor, basis: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+        def apply(v: np.ndarray) -> np.ndarray:
+            v = v - basis @ (basis.T @ v)
+            xb, xs = factor.solve(v[structure.blocks], v[structure.shared[0]])
+            out = np.zeros(n)
+            out[structure.blocks], out[structure.shared[0]] = xb, xs
+            return out - basis @ (basis.T @ out)
+
+        return apply
+
+    cov_m = pinv(fm, null)
+    inv_big, _ = _largest_eigenvalues(cov_m, n) if rank else (np.zeros(1), None)
+    smin = float(1.0 / np.sqrt(inv_big[-1])) if rank and inv_big[-1] > 0 else 0.0
+    condition = float(smax / smin) if rank and smin > 0 else float("inf")
+    in_null = np.sum(null_t**2, axis=1) > 1e-12 if null_t.size else np.zeros(n, dtype=bool)
+    cov = BlockCovariance(ft, structure, S, chi2_scale, in_null, names)
+    cov._information_max = ft.smax**2
+    unobservable = [
+        _combination(v, names, units, S, float("inf"), config.coefficient_tol) for v in _sparse_basis(null).T
+    ]
+    weak = []
+    # σ along a direction is √χ² / (its singular value): none exceeds config.weak when even the
+    # trace of the scaled covariance (the sum of all σ²) stays below it.
+    trace = float(np.sum(BlockCovariance(fm, structure, np.ones(n), 1.0, np.zeros(n, bool), names).std() ** 2))
+    if rank and trace * chi2_scale > config.weak**2:
+        k = 8
+        while True:
+            lam, vecs = _largest_eigenvalues(cov_m, n, k)
+            if lam[0] * chi2_scale <= config.weak**2 or k >= n - 2 or k >= 256:
+                break
+            k *= 2
+        for i in np.argsort(lam):  # as the dense path: by growing σ
+            sigma_dir = float(np.sqrt(max(lam[i], 0.0) * chi2_scale))
+            if sigma_dir > config.weak and lam[i] > 0:
+                weak.append(_combination(vecs[:, i], names, units, S, sigma_dir, config.coefficient_tol))
+    std = cov.std()
+    return Observability(
+        names=list(names),
+        units=units,
+        scales=S,
+        singular_values=np.array([smax, smin]),
+        rank=rank,
+        rank_with_priors=ft.rank,
+        condition=condition,
+        unobservable=unobservable,
+        weak=weak,
+        covariance=cov,
+        std=std,
+        correlation=cov.correlation(),
+        chi2_scale=chi2_scale,
+        null_space=null,
+        n_values=int(size),
+    )

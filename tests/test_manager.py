@@ -45,8 +45,11 @@ def _model_file(
 def _scan(model, truth, seed, sigma=1.5e-3, shapes=None) -> Scan:
     info = depth_camera(model)
     depth = add_depth_noise(render_depth(model, truth, shapes=shapes), sigma, 0.0, seed=seed)
-    pts, _, _ = depth_to_points(depth, info)
-    return Scan(pts, model.frames[info.frame].name, sigma=sigma, source=f"seed {seed}")
+    pts, pixels, _ = depth_to_points(depth, info)
+    # With its pixels, as load_scan gives it: down-sampled on the pixel grid, not by noisy 3-D voxels.
+    assert info.intrinsics is not None
+    name = model.frames[info.frame].name
+    return Scan(pts, name, sigma=sigma, source=f"seed {seed}", pixels=pixels, focal=min(info.intrinsics[:2]))
 
 
 ROOM_TRUTH = {"room.x": 0.01, "room.y": -0.006, "room.z": 0.004, "room.yaw": np.radians(0.8)}
@@ -70,9 +73,9 @@ def test_lever_rotating_over_20_batches_is_tracked_within_3_sigma(tmp_path):
         # docs/range.md, limitations.)
         u = manager.update([_scan(model, truth, seed=k, sigma=0.6e-3)])
         assert u.accepted, u
-        z = abs(u.values["lever.angle"] - truth["lever.angle"]) / u.std["lever.angle"]
-        assert z < 3.0, f"batch {k}: lever.angle {z:.2f}σ off"
-        assert abs(u.values["room.x"] - truth["room.x"]) < 1e-3  # the room stays put (its σ shrinks)
+        for name, value in u.values.items():  # every estimated parameter, at every step
+            z = abs(value - truth.get(name, 0.0)) / u.std[name]  # room.roll and room.pitch: truly 0
+            assert z < 3.0, f"batch {k}: {name} {z:.2f}σ off"
         sigmas.append(u.std["room.x"])
         assert not any(d.startswith("lever.angle") for d in u.drift)  # expected motion: no drift flag
     assert sigmas[-1] < 0.6 * sigmas[0]  # the room's pose tightens as batches accumulate
@@ -116,7 +119,8 @@ def test_kill_9_during_an_update_loses_no_accepted_update(tmp_path):
     scans = tmp_path / "scans"
     scans.mkdir()
     info = depth_camera(model)
-    for k in range(4):
+    count = 10  # updates take ~0.1 s warm: enough of them that the kill lands inside the run
+    for k in range(count):
         depth = add_depth_noise(render_depth(model, {**ROOM_TRUTH, "room.x": 0.01 + 0.001 * k}), 1.5e-3, seed=k)
         write_depth_png(scans / f"scan_{k:02d}.png", depth, info.depth_scale)
     out = tmp_path / "out"
@@ -126,21 +130,20 @@ def test_kill_9_during_an_update_loses_no_accepted_update(tmp_path):
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
     deadline = time.monotonic() + 300
     while len(_journal(out)) < 1 and time.monotonic() < deadline and proc.poll() is None:
-        time.sleep(0.05)
-    time.sleep(0.3)  # into the next update
+        time.sleep(0.01)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     before = _journal(out)
-    assert 1 <= len(before) < 4, proc.stderr.read().decode() if proc.stderr else ""
+    assert 1 <= len(before) < count, proc.stderr.read().decode() if proc.stderr else ""
     run = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
     assert run.returncode == 0, run.stderr
     assert "resumed" in run.stdout
     after = _journal(out)
     assert after[: len(before)] == before  # nothing accepted was lost or rewritten
-    assert [h["seq"] for h in after] == [1, 2, 3, 4]
-    assert sorted(Path(f).name for h in after for f in h["files"]) == [f"scan_{k:02d}.png" for k in range(4)]
+    assert [h["seq"] for h in after] == list(range(1, count + 1))
+    assert sorted(Path(f).name for h in after for f in h["files"]) == [f"scan_{k:02d}.png" for k in range(count)]
     assert not list(out.glob(".*.part"))
     state = json.loads((out / "state.json").read_text())
-    assert state["seq"] == 4
+    assert state["seq"] == count
     calibrated = mbcal.load_model(out / "room.calibrated.mdl")
     assert calibrated.param("room.x").nominal == pytest.approx(after[-1]["values"]["room.x"], abs=1e-9)

@@ -190,3 +190,80 @@ def test_whole_scenes_from_the_compiled_program_match_the_modeler_run_op_by_op(c
     for name in ("frame_poses", "points", "camera_intrinsics", "camera_distortion", "shape_poses", "shape_dims"):
         np.testing.assert_allclose(getattr(compiled, name), np.asarray(getattr(eager, name)), rtol=1e-13, atol=1e-13)
     np.testing.assert_allclose(problem.frame_origins(x), compiled.frame_poses[..., :3, 3], rtol=1e-13, atol=1e-13)
+
+
+# ---- the compiled model's residual and Jacobian (issues 15 and 16) ------------------------------
+
+
+def _image_point_predictions(problem: Problem, x: np.ndarray):
+    """h of the problem's image points and ∂h/∂x, straight from the measurement model."""
+    from mbcal._jax import jnp
+
+    (group,) = [g for g in problem.groups if g.model.kind == "image_point"]
+    known = jnp.asarray(problem.params.known)
+
+    def h(xx):
+        return group.model.predict(problem.scenes(xx, known), group.batch)
+
+    both = jax.jit(jax.jacfwd(lambda xx: (lambda v: (v, v))(h(xx)), has_aux=True))
+    J, value = both(jnp.asarray(x))
+    return np.asarray(value), np.asarray(J)
+
+
+@pytest.mark.parametrize("case", ["camera", pytest.param("stereo", marks=pytest.mark.slow)])
+def test_image_points_on_the_grid_match_them_one_by_one(camera, monkeypatch, case):
+    import dataclasses
+
+    from mbcal.measurements import builtin
+
+    if case == "camera":  # some corners left out, the measurements shuffled
+        data = camera_data(camera, 3, seed=11)
+        model, estimate = camera, ["cam.*", "board.*"]
+    else:  # two cameras, their measurements interleaved
+        model = mbcal.load_model(MODELS / "teleexistence.mdl")
+        plan = mbcal.read_measurements(ROOT / "measurements" / "room_plan.csv", model)
+        data = mbcal.simulate(model, plan, {"room.x": 0.05, "room.yaw": 0.1}, noise=0.5, seed=2)
+        estimate = ["room.*"]
+    order = np.random.default_rng(0).permutation(len(data.measurements))
+    if case == "camera":
+        order = np.delete(order, np.arange(0, len(order), 7))  # some corners unseen
+    data = dataclasses.replace(data, measurements=[data.measurements[i] for i in order])
+    problem = Problem(model, data, estimate)
+    x = problem.params.x0 + 0.01
+    batch = problem.groups[0].batch
+    seen = {}
+    for fill in (0.0, 2.0):  # always on the grid, never
+        monkeypatch.setattr(builtin, "GRID_MIN_FILL", fill)
+        scenes = jax.eval_shape(problem.scenes, jax.numpy.asarray(x))
+        assert (builtin._grids(scenes, batch) is None) == (fill > 1)
+        seen[fill] = _image_point_predictions(problem, x)
+    np.testing.assert_allclose(seen[0.0][0], seen[2.0][0], rtol=1e-13, atol=1e-9)
+    np.testing.assert_allclose(seen[0.0][1], seen[2.0][1], rtol=1e-12, atol=1e-9 * np.abs(seen[2.0][1]).max())
+    if case == "camera":
+        assert len(batch) < 3 * 54  # the grid path gathered a partly filled grid
+
+
+def test_the_local_jacobian_of_many_views_matches_finite_differences_of_the_step(camera):
+    """The solver's Jacobian in local coordinates (the rotation step to first order,
+    :func:`mbcal.language.soa_math.rotation_step`) against central differences through the exact
+    step x ⊞ d (:meth:`mbcal.problem.OrientationSteps.plus`)."""
+    from mbcal._jax import jnp
+
+    data = camera_data(camera, 3, seed=12)
+    problem = Problem(camera, data, ["cam.*", "board.*"])
+    local = problem.local
+    assert local is not None and len(problem.orientation_names) == 3
+    x = problem.params.x0.copy()
+    x[[problem.params.names.index(f"board.{a}@{c}") for a in ("roll", "pitch", "yaw") for c in ("view01",)]] = 0.3
+    y, known = jnp.asarray(problem.y), jnp.asarray(problem.params.known)
+    n = problem.params.size
+    r = np.asarray(local.residual(jnp.asarray(x), jnp.zeros(n), y, known))
+    J = np.asarray(jax.jacfwd(lambda d: local.residual(jnp.asarray(x), d, y, known))(jnp.zeros(n)))
+    np.testing.assert_allclose(r, problem.residual(x), rtol=1e-12, atol=1e-9)
+    plus = jax.jit(local.plus)
+    h = 1e-6
+    for j in range(n):
+        e = np.zeros(n)
+        e[j] = h
+        fd = (problem.residual(np.asarray(plus(x, e))) - problem.residual(np.asarray(plus(x, -e)))) / (2 * h)
+        np.testing.assert_allclose(J[:, j], fd, rtol=1e-5, atol=1e-6 * np.abs(J).max())

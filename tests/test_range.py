@@ -13,7 +13,7 @@ import mbcal
 from mbcal.cli import main
 from mbcal.errors import MbcalError, MeasurementFileError
 from mbcal.range.readers import read_cloud, read_depth, write_depth_png, write_pcd, write_ply, write_xyz
-from mbcal.range.scans import depth_to_points, edge_mask, load_scan, voxel_downsample
+from mbcal.range.scans import Scan, depth_to_points, edge_mask, load_scan, voxel_downsample
 
 ROOM = "models/room_depth.mdl"
 
@@ -321,9 +321,9 @@ def test_mixed_image_and_range():
 def test_scan_residual_jacobian_matches_finite_differences():
     """The point-to-surface residual's autodiff Jacobian against central differences, with points
     near every shape kind of the room (tube, cylinder, box, sphere, cone, rectangle, plane, mesh)."""
-    from mbcal._jax import jnp
+    from mbcal._jax import jax, jnp
     from mbcal.params import ParameterSet
-    from mbcal.range.fit import _engine, _pad, _prior_rows
+    from mbcal.range.fit import _engine, _Points, _prior_rows, residuals_at
 
     model = mbcal.load_model(ROOM)
     ps = ParameterSet(model, ["room.*", "lever.angle", "lever.length"])
@@ -334,18 +334,28 @@ def test_scan_residual_jacobian_matches_finite_differences():
     pts = np.repeat(centres, 3, axis=0) + rng.normal(0, 0.03, (3 * len(centres), 3))
     kinds = {s.kind for s in model.shapes}
     assert {"tube", "cylinder", "box", "sphere", "cone", "rectangle", "plane", "mesh"} <= kinds
-    m = _pad(len(pts))
-    P = np.zeros((m, 3))
-    P[: len(pts)] = pts
-    args = [P, np.zeros(m, dtype=np.int64), np.r_[np.full(len(pts), 500.0), np.zeros(m - len(pts))], ps.known]
-    args += list(_prior_rows(ps, None, True))
     x = ps.x0 + rng.normal(0, 1e-3, ps.size)
-    J = np.asarray(eng.jacobian(jnp.asarray(x), *(jnp.asarray(a) for a in args)))[: len(pts)]
+    cloud = _Points(eng, ps.known, pts, np.zeros(len(pts), dtype=np.int64))
+    D, _ = cloud.screen(x, 0.02)
+    cand, groups = cloud.groups(D, 0.02)
+    assert cand.sum(axis=0)[[s.kind == "mesh" for s in model.shapes]].min() > 0  # the mesh is a candidate
+    weight = np.r_[np.full(len(pts), 500.0), np.zeros(cloud.m - len(pts))]
+    args = [weight, ps.known, *_prior_rows(ps, None, True), *groups]
+    args = [cloud.P, cloud.Q, *(jnp.asarray(a) for a in args)]
+
+    compiled = jax.jit(eng.residual)
+
+    def residual(xx):
+        return np.asarray(compiled(jnp.asarray(xx), *args))[: len(pts)]
+
+    # At x, the residual over each point's candidate shapes is its distance to the nearest shape of all.
+    values = dict(zip(ps.names, x))
+    full = residuals_at(model, Scan(pts), values)
+    np.testing.assert_allclose(residual(x), 500.0 * full, rtol=1e-9, atol=1e-9)
+    J = np.asarray(eng.jacobian(jnp.asarray(x), *args))[: len(pts)]
     h = 1e-6
     for j in range(ps.size):
         e = np.zeros(ps.size)
         e[j] = h
-        rp = np.asarray(eng.residual(jnp.asarray(x + e), *(jnp.asarray(a) for a in args)))[: len(pts)]
-        rm = np.asarray(eng.residual(jnp.asarray(x - e), *(jnp.asarray(a) for a in args)))[: len(pts)]
-        np.testing.assert_allclose(J[:, j], (rp - rm) / (2 * h), rtol=1e-4, atol=1e-4 * 500)
+        np.testing.assert_allclose(J[:, j], (residual(x + e) - residual(x - e)) / (2 * h), rtol=1e-4, atol=1e-4 * 500)
     assert np.abs(J).max() > 1.0  # the residual does depend on the unknowns

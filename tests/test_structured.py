@@ -10,11 +10,13 @@ import pytest
 
 import mbcal
 from mbcal._jax import jax, jnp
+from mbcal.api import _analysed_by_blocks
 from mbcal.datasets.bal import BalFileError, bal_residual, read_bal
 from mbcal.errors import SolverError
 from mbcal.problem import Problem
 from mbcal.solver import SolverConfig, least_squares
 from mbcal.structured import (
+    DENSE_ANALYSIS_ENTRIES,
     Structure,
     analyze_structured,
     bal_structure,
@@ -139,6 +141,16 @@ def test_a_block_seen_along_one_line_is_named_not_crashed():
     assert direction["where"] == "block 2"
     assert all(name.endswith("@view03") for name in direction["combination"])
     assert np.isfinite(analysis.shared_std).all()  # the intrinsics stay determined by the other views
+    # calibrate's report from the blocks names it too, and stays finite where it should.
+    result = mbcal.calibrate(
+        model, data, default_unknowns(model, data), restarts=1, initial=start, analysis="structured", suggest=False
+    )
+    obs = result.observability
+    assert obs.rank == problem.params.size - 1 and [c.names for c in obs.unobservable] == [["board.roll@view03"]]
+    assert result.std["board.roll@view03"] == np.inf and np.isfinite(result.std["board.yaw@view03"])
+    assert np.isfinite(result.std["cam.fx"]) and np.isfinite(result.verdict.condition)
+    view03 = [p for p in result.points if p.configuration == "view03"]
+    assert len(view03) == 9 and all(np.isfinite(p.total) for p in view03)  # on the roll axis: not moved by it
 
 
 @pytest.mark.slow
@@ -247,3 +259,94 @@ def test_the_command_line_forces_the_solver_and_refuses_what_cannot_be_structure
     with pytest.raises(SystemExit):
         main([*argv, "--structure", "sparse"])
     assert "invalid choice: 'sparse'" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_the_report_from_the_blocks_equals_the_dense_report(camera20):
+    """calibrate's analysis of a structured solve from its blocks (used beyond
+    DENSE_ANALYSIS_ENTRIES, forced here with analysis="structured") gives the dense report:
+    σ, covariance, correlations, condition, the fit verdict with its suspect (an outlier planted
+    in one corner), the weak direction and every point's uncertainty, to 1e-9."""
+    model, data, problem, _ = camera20
+    start = initial_values(model, data, problem.params.names)
+    values = [m.value.copy() for m in data]
+    values[37] = values[37] + np.array([5.0, -4.0])  # image_point38: 6σ off
+    bad = data.with_values(values)
+    estimate = default_unknowns(model, data)
+    dense, ours = (
+        mbcal.calibrate(model, bad, estimate, restarts=1, initial=start, analysis=how)
+        for how in ("dense", "structured")
+    )
+    a, b = dense.observability, ours.observability
+    assert type(b.covariance).__name__ == "BlockCovariance"  # never formed: entries on request
+    assert a.rank == b.rank == problem.params.size and a.rank_with_priors == b.rank_with_priors
+    assert b.condition == pytest.approx(a.condition, rel=1e-9)
+    np.testing.assert_allclose(b.singular_values, a.singular_values[[0, -1]], rtol=1e-9)
+    np.testing.assert_allclose(b.std, a.std, rtol=1e-9)
+    scale = np.sqrt(np.outer(a.std, a.std))
+    assert np.max(np.abs(np.asarray(b.covariance) - a.covariance) / scale) < 1e-9
+    assert np.nanmax(np.abs(np.asarray(b.correlation) - a.correlation)) < 1e-9
+    i = [problem.params.names.index(n) for n in ("cam.fx", "board.z@view04", "cam.k3")]
+    np.testing.assert_allclose(b.covariance[np.ix_(i, i)], a.covariance[np.ix_(i, i)], rtol=1e-9)
+    u, v = dense.verdict, ours.verdict
+    assert not u.consistent and not v.consistent
+    assert (v.chi2, v.dof) == (pytest.approx(u.chi2, rel=1e-12), u.dof)
+    assert v.p_value == pytest.approx(u.p_value, rel=1e-9)
+    assert (
+        [(s.kind, s.ids) for s in v.suspects]
+        == [(s.kind, s.ids) for s in u.suspects]
+        == [("outliers", ("image_point38",))]
+    )
+    assert v.suspects[0].excess == pytest.approx(u.suspects[0].excess, rel=1e-9)
+    # The dense verdict takes the condition from eigvalsh of the covariance (its smallest eigenvalue,
+    # 1e-10 of the largest, only to ~1e-6); the blocks take it from λmax of JᵀJ, to round-off.
+    assert v.condition == pytest.approx(u.condition, rel=1e-6)
+    assert [w.names for w in v.weak] == [w.names for w in u.weak] == [("cam.k3", "cam.k2")]
+    assert v.weak[0].sigma == pytest.approx(u.weak[0].sigma, rel=1e-9)
+    assert len(ours.points) == len(dense.points) == 20 * 54
+    for p, q in zip(dense.points, ours.points):
+        assert (p.point, p.configuration) == (q.point, q.configuration)
+        np.testing.assert_allclose(q.covariance, p.covariance, rtol=1e-9, atol=1e-9 * np.abs(p.covariance).max())
+        assert q.parallel == pytest.approx(p.parallel, rel=1e-9)
+    assert ours.summary().splitlines()[:-1] == dense.summary().splitlines()[:-1]  # all but the time taken
+    # The rule of analysis="auto": densely up to DENSE_ANALYSIS_ENTRIES Jacobian entries, from the
+    # blocks beyond (300 views of the 9 × 6 board: 32,400 rows × 1,809 unknowns); a bad name is an error.
+    views300 = Structure(
+        blocks=9 + np.arange(1800).reshape(300, 6), shared=np.arange(9)[None], row_block=np.repeat(np.arange(300), 108),
+        row_group=np.zeros(32400, dtype=int),
+    )  # fmt: skip
+    assert views300.m * views300.n > DENSE_ANALYSIS_ENTRIES > structure_of(problem).m * problem.params.size
+    assert _analysed_by_blocks(views300, "auto") and not _analysed_by_blocks(structure_of(problem), "auto")
+    assert not _analysed_by_blocks(views300, "dense") and _analysed_by_blocks(structure_of(problem), "structured")
+    with pytest.raises(SolverError, match="analysis must be 'auto', 'dense' or 'structured'"):
+        mbcal.calibrate(model, bad, estimate, restarts=1, initial=start, analysis="sparse")
+
+
+@pytest.mark.slow
+def test_the_verdicts_linear_algebra_from_the_blocks_equals_the_dense_one():
+    """StructuredLinear (the fit verdict's refit and deletion statistics without the m × n matrix)
+    against fit._Linear on 12 views from Zhang's start: S, rank, and the drop of S when a view
+    (losing its 6 pose directions), rows across four views (two whole), or six views are set aside — by
+    leverages within the rows and, for large groups, by a second factorisation in the unknowns."""
+    from mbcal.fit import _Linear
+    from mbcal.structured import StructuredLinear
+
+    model = mbcal.load_model(MODELS / "camera_calibration.mdl")
+    data = synthetic_views(model, 12, seed=3)
+    problem = Problem(model, data, default_unknowns(model, data))
+    x = problem.params.from_dict(initial_values(model, data, problem.params.names))
+    structure = structure_of(problem)
+    r, Jc = compressed_jacobian(problem.residual_function, x, structure, (problem.y, problem.params.known))
+    rows = np.arange(problem.n_residuals)
+    dense, ours = _Linear(r, problem.jacobian(x), rows), StructuredLinear(structure, r, Jc, rows)
+    assert ours.S == pytest.approx(dense.S, rel=1e-10) and ours.rank == dense.rank == problem.params.size
+    for group, lost in ((np.arange(108), 6), (np.arange(50, 400), 12), (np.arange(700), 36)):
+        expected = dense.deletion(group)
+        assert expected[1] == len(group) - lost
+        for limit in (3000, 0):  # the rows' leverages, then the unknowns' space
+            ours._GROUP_ROWS = limit
+            drop, dof = ours.deletion(group)
+            assert dof == expected[1] and drop == pytest.approx(expected[0], rel=1e-9)
+    blocks = [np.arange(s.start, s.stop) for s in problem.measurement_rows[:40]]
+    np.testing.assert_allclose(ours.deletions(blocks)[0], dense.deletions(blocks)[0], rtol=1e-9)
+    np.testing.assert_array_equal(ours.deletions(blocks)[1], dense.deletions(blocks)[1])

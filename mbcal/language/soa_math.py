@@ -55,6 +55,7 @@ __all__ = [
     "rodrigues_cs",
     "rpy",
     "rotation_vector",
+    "rotation_step",
     "axis_angle",
     "quaternion",
     "normalise",
@@ -280,6 +281,19 @@ def rotation_vector(w: Vec) -> tuple:
     K = ((0.0, neg(wz), wy), (wz, 0.0, neg(wx)), (neg(wy), wx, 0.0))
     K2 = matmul3(K, K)
     return tuple(tuple(add(I3[i][j], add(mul(A, K[i][j]), mul(B, K2[i][j]))) for j in range(3)) for i in range(3))
+
+
+def rotation_step(w: Vec) -> tuple:
+    """I + [w]×: the rotation exp([w]×) to first order in w — exact in value and first derivative
+    at w = 0, which is all a Jacobian about the current orientation reads.
+
+    The solver's Jacobian in local coordinates uses this instead of :func:`rotation_vector`: the
+    exact map's square root, sines and branches, with their derivatives, were evaluated for every
+    point seen in a configuration (XLA fuses them into the per-point kernels), which made the
+    Jacobian of a 500-view camera calibration ~2.5× slower (issue 15).
+    """
+    wx, wy, wz = w
+    return ((1.0, neg(wz), wy), (wz, 1.0, neg(wx)), (neg(wy), wx, 1.0))
 
 
 def axis_angle(axis: Vec, angle: Scalar) -> Transform:

@@ -17,13 +17,14 @@ kind                      refers to                    values               mean
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
 from mbcal._jax import jax, jnp
 from mbcal.geometry.camera import project_camera_points
 from mbcal.geometry.raycast import cast_rays, distance_to_shapes
+from mbcal.language import soa_math as sm
 from mbcal.language.ir import Const
 from mbcal.measurements.protocol import Batch, MeasurementModel, Role, frame_poses_with_world
 from mbcal.modeling import Needs
@@ -84,6 +85,55 @@ def _to_camera(scenes: Scene, batch: Batch) -> tuple[Array, np.ndarray]:
     return rotate_t(T[:, :3, :3], p - T[:, :3, 3]), cams
 
 
+GRID_MIN_FILL = 0.5
+"""``image_point`` measurements are projected on the grid (configuration × point) of each camera
+when they fill at least this fraction of it, else one by one (see :func:`_grids`)."""
+
+
+def _constant_pose(model, frame: int) -> np.ndarray | None:
+    """The world pose (4, 4) of a frame whose chain to the world holds only constant poses (no
+    joint, no parameter), else None."""
+    T = np.eye(4)
+    while frame >= 0:
+        info = model.frames[frame]
+        if info.joint is not None or not (info.pose is None or isinstance(info.pose, Const)):
+            return None
+        if info.pose is not None:
+            T = np.asarray(info.pose.value, dtype=float) @ T
+        frame = info.parent
+    return T
+
+
+class _Grid(NamedTuple):
+    """The measurements of one camera laid out on the grid (configuration × point) of the scenes."""
+
+    members: np.ndarray  # (k,) positions in the batch
+    points: np.ndarray  # (P,) the points they read, each once
+    column: np.ndarray  # (k,) each measurement's column in ``points``
+
+
+def _grids(scenes: Scene, batch: Batch) -> list[_Grid] | None:
+    """Per camera, the (configuration × point) grid that holds its measurements — or None when the
+    measurements fill less than :data:`GRID_MIN_FILL` of the grids.
+
+    Projecting on the grid and picking the measurements' pixels at the end makes the per-point
+    work one array kernel over the scenes' own layout (each camera's pose, intrinsics and
+    distortion broadcast over its points), instead of gathering the point, the camera's pose,
+    intrinsics and distortion — and under ``jacfwd`` all their derivatives — for every
+    measurement: ~2× faster residual and Jacobian for a camera seen in many views (issue 15).
+    """
+    cams, points = batch.refs["camera"], batch.refs["point"]
+    C = int(scenes.points.shape[0])
+    grids = []
+    for k in np.unique(cams):
+        members = np.nonzero(cams == k)[0]
+        used, column = np.unique(points[members], return_inverse=True)
+        grids.append(_Grid(members, used, column.reshape(-1)))
+    if len(batch) < GRID_MIN_FILL * sum(C * len(g.points) for g in grids):
+        return None
+    return grids
+
+
 class ImagePoint(MeasurementModel):
     """Pixel coordinates of a named point in a camera (OpenCV's pinhole and distortion model)."""
 
@@ -95,21 +145,48 @@ class ImagePoint(MeasurementModel):
     description = "pixel coordinates (u, v) of a named point in a camera image"
 
     def predict(self, scenes: Scene, batch: Batch) -> Array:
-        pc, cams = _to_camera(scenes, batch)
+        grids = _grids(scenes, batch)
+        if grids is None:  # sparse: per measurement
+            pc, cams = _to_camera(scenes, batch)
+            return self._project(scenes, pc, cams, lambda a: a[batch.config, cams])
+        parts = []
+        index = np.zeros(len(batch), dtype=np.int64)  # each measurement's row in the grids, flattened
+        offset = 0
+        for g in grids:
+            k = int(batch.refs["camera"][g.members[0]])
+            frame = scenes.model.cameras[k].frame
+            every = np.array_equal(g.points, np.arange(scenes.points.shape[1]))
+            points = scenes.points if every else scenes.points[:, g.points]  # (C, P, 3)
+            fixed = _constant_pose(scenes.model, frame)
+            if fixed is not None:  # a camera fixed in the world: Rᵀ (p − t) with constants
+                d = [sm.sub(points[..., i], float(fixed[i, 3])) for i in range(3)]
+                pc = jnp.stack([sm.total(sm.mul(float(fixed[i, j]), d[i]) for i in range(3)) for j in range(3)], -1)
+            else:
+                T = scenes.frame_poses[:, frame]  # (C, 4, 4)
+                pc = jnp.sum(T[:, None, :3, :3] * (points - T[:, None, :3, 3])[:, :, :, None], axis=2)  # Rᵀ (p − t)
+            uv = self._project(scenes, pc, [k], lambda a, k=k: a[:, k][:, None])
+            parts.append(jnp.reshape(uv, (-1, 2)))
+            index[g.members] = offset + batch.config[g.members] * len(g.points) + g.column
+            offset += int(uv.shape[0]) * len(g.points)
+        return (parts[0] if len(parts) == 1 else jnp.concatenate(parts))[index]
+
+    @staticmethod
+    def _project(scenes: Scene, pc: Array, cams: Any, take: Any) -> Array:
+        """Pixels of points ``pc`` (..., 3) in the camera frame of cameras ``cams``; ``take`` picks
+        the rows of the scenes' intrinsics and distortion that go with them (broadcasting
+        against pc's leading axes)."""
         model = scenes.model
-        used = sorted(set(cams.tolist()))
+        used = sorted(set(np.asarray(cams).tolist()))
         if all(_is_zero(n) for k in used for n in model.cameras[k].distortion):
             # No camera distorts: skip the polynomial (and its derivatives) altogether.
-            xy = pc[:, :2] / pc[:, 2:3]
+            xy = pc[..., :2] / pc[..., 2:3]
             if all(_is_zero(model.cameras[k].intrinsics[4]) for k in used):
                 if len(used) == 1 and all(isinstance(n, Const) for n in model.cameras[used[0]].intrinsics[:4]):
                     fx, fy, cx, cy = (float(n.value) for n in model.cameras[used[0]].intrinsics[:4])
-                    return jnp.stack([fx * xy[:, 0] + cx, fy * xy[:, 1] + cy], axis=1)
-                K = scenes.camera_intrinsics[batch.config, cams]
-                return jnp.stack([K[:, 0] * xy[:, 0] + K[:, 2], K[:, 1] * xy[:, 1] + K[:, 3]], axis=1)
-        return project_camera_points(
-            pc, scenes.camera_intrinsics[batch.config, cams], scenes.camera_distortion[batch.config, cams]
-        )
+                    return jnp.stack([fx * xy[..., 0] + cx, fy * xy[..., 1] + cy], axis=-1)
+                K = take(scenes.camera_intrinsics)
+                return jnp.stack([K[..., 0] * xy[..., 0] + K[..., 2], K[..., 1] * xy[..., 1] + K[..., 3]], axis=-1)
+        return project_camera_points(pc, take(scenes.camera_intrinsics), take(scenes.camera_distortion))
 
     def candidates(self, model, configurations):
         return [

@@ -21,7 +21,13 @@ The steps of :func:`fit_scans`:
 3. **crop**: points farther than ``crop`` from every modelled surface at the start are left out
    (the rest of the room, the floor far away);
 4. the Marquardt solver of :mod:`mbcal.solver` with the robust loss, its random restarts, and
-   the prior in information form (a previous posterior, :class:`Prior`) plus the model's σ;
+   the prior in information form (a previous posterior, :class:`Prior`) plus the model's σ.
+   Each point is compared in the solver only with its **candidate** shapes: those within
+   ``assign_margin`` of its nearest shape where they were chosen; at the solution every point is
+   compared with every shape again and, where its nearest shape is not a candidate, the
+   candidates are chosen again there and the solve repeats — so the residual at the reported
+   solution is the distance to the nearest of all shapes.  A mesh is screened by its bounding
+   box (a lower bound of its distance) and searched triangle by triangle only near it;
 5. **outliers**: points farther than ``outlier_sigma`` σ from every surface at the solution
    belong to no modelled surface; they are counted, listed and can be written as a PLY;
 6. the covariance from the inliers' Jacobian (and the prior), the reduced χ² of the inliers,
@@ -29,7 +35,11 @@ The steps of :func:`fit_scans`:
    exceeds ``misfit_fraction`` is named as a **structural misfit** (its shape no longer fits).
 
 The point arrays are arguments of the compiled program (padded to a multiple of 4096 with
-zero-weight rows), so new scans of the same size class reuse it: no recompilation per batch.
+zero-weight rows), and so are the per-shape candidate lists (padded to size classes with an
+eighth of room to grow, kept while later batches fit), so new scans of a scene reuse it: no
+recompilation per batch.  The graduated first solve uses the same program (the loss with scale
+k·c on r is k² times the loss with scale c on r/k: rows scaled by 1/k), and so do the probes
+(one start at a time).  A fit with a prior (a warm-started manager update) skips the probes.
 """
 
 from __future__ import annotations
@@ -41,11 +51,12 @@ from typing import Any
 
 import numpy as np
 
-from mbcal._jax import jax, jnp
+from mbcal._jax import jax, jnp, to_device
 from mbcal.cache import enable_compilation_cache
 from mbcal.errors import SolverError
 from mbcal.geometry.raycast import distance_to_shapes, surface_distance
 from mbcal.language.model import Model
+from mbcal.measurements.sets import MeasurementSet
 from mbcal.modeling import Needs, modeler
 from mbcal.params import ParameterSet
 from mbcal.range.scans import Scan
@@ -53,7 +64,17 @@ from mbcal.solver import Loss, SolverConfig, least_squares, random_starts
 
 Array = Any
 
-__all__ = ["FitOptions", "Prior", "ScanFit", "Misfit", "fit_scans", "scan_world_points", "residuals_at", "BUCKET"]
+__all__ = [
+    "FitOptions",
+    "Prior",
+    "ScanFit",
+    "Misfit",
+    "fit_scans",
+    "scan_measurements",
+    "scan_world_points",
+    "residuals_at",
+    "BUCKET",
+]
 
 BUCKET = 4096
 
@@ -80,6 +101,8 @@ class FitOptions:
     """After convergence, restart from ± ``probe_sigma`` σ along the two weakest directions and keep
     a better minimum, up to this many rounds (0: off)."""
     probe_sigma: float = 4.0
+    probe_gain: float = 0.05
+    """A probe's minimum is taken when it lowers the robust cost (in χ² units) by more than this."""
     graduated: float = 10.0
     """Solve first with the robust loss's scale times this (then the nominal scale); 1: off."""
     seed: int = 0
@@ -90,6 +113,10 @@ class FitOptions:
     max_points: int = 60000
     """At most this many points (after down-sampling and crop) go into the fit (a seeded random subset)."""
     max_iterations: int = 60
+    assign_margin: float = 0.02
+    """The solver compares a point only with the shapes within this distance (m) of its nearest
+    one at the start (its candidates); they are chosen again where the solution's nearest shape
+    of a point is not among them."""
     priors: bool = True
     """Use the model's prior σ of the unknowns."""
     known: Mapping[str, float] | None = None
@@ -273,14 +300,24 @@ class ScanFit:
 
 
 class _Engine:
-    """Residual, Jacobian and per-shape distances for one model, unknowns, configurations and scan frames."""
+    """The compiled functions of one model, unknowns, configurations and scan frames.
+
+    ``screen``: every point's distance to every shape (exact, except a mesh's: the distance to its
+    bounding box, a lower bound); ``exact[s]``: a mesh's exact distance on the few points near it;
+    ``residual`` / ``nearest``: each point's distance to the nearest of its *candidate* shapes,
+    given per shape as an index array of the points it is a candidate for (``-1``: padding).
+    """
 
     def __init__(self, model: Model, ps: ParameterSet, pairs: tuple[tuple[int, int], ...]):
         self.model, self.ps, self.pairs = model, ps, pairs
         self.shapes = list(model.shapes)
+        self.meshes = tuple(k for k, s in enumerate(self.shapes) if s.kind == "mesh")
+        self.caps: tuple[int, ...] | None = None  # the group sizes last compiled for (reused while they fit)
         C = len(ps.configurations)
         needs = Needs(frames=frozenset(f for _, f in pairs if f >= 0), shapes=None)
         n_frames = len(model.frames)
+        pair_config = np.array([c for c, _ in pairs], dtype=np.int64)
+        shapes = self.shapes
 
         def scenes(x, known):
             rows, configs = ps.views(x, known)
@@ -298,36 +335,65 @@ class _Engine:
                 out = out + jnp.where((pair == k)[:, None], p, 0.0) if len(pairs) > 1 else p
             return sc, out
 
-        pair_config = np.array([c for c, _ in pairs], dtype=np.int64)
-
-        def distances(x, known, pts, pair):
-            sc, w = world(x, known, pts, pair)
+        def shape_local(sc, s, w, pair):
+            """Points w (k, 3) in the frame of shape s, and its dims, in each point's configuration."""
             if C == 1:
-                return distance_to_shapes(sc.shape_poses[0], sc.shape_dims[0], self.shapes, w)
-            cfg = jnp.asarray(pair_config)[pair]
-            d = jnp.zeros(pts.shape[0])
-            for c in range(C):
-                dc = distance_to_shapes(sc.shape_poses[c], sc.shape_dims[c], self.shapes, w)
-                d = jnp.where(cfg == c, dc, d)
-            return d
+                T, dims = sc.shape_poses[0, s], sc.shape_dims[0, s]
+            else:
+                cfg = jnp.asarray(pair_config)[pair]
+                T, dims = sc.shape_poses[cfg, s], sc.shape_dims[cfg, s]
+            d = w - T[..., :3, 3]
+            return jnp.sum(d[..., :, None] * T[..., :3, :3], axis=-2), dims
 
-        def residual(x, pts, pair, weight, known, A, b):
-            r = distances(x, known, pts, pair) * weight
-            return jnp.concatenate([r, A @ x - b])
+        def box_bound(shape, p, dims):
+            """Distance from p to the bounding box of a mesh's scaled vertices: a lower bound of
+            the distance to its surface (every surface point lies in the box)."""
+            V = np.asarray(shape.mesh.vertices, dtype=float).reshape(-1, 3)
+            if len(V) == 0:
+                return jnp.full(p.shape[:-1], jnp.inf)
+            a, b = dims * V.min(axis=0), dims * V.max(axis=0)
+            lo, hi = jnp.minimum(a, b), jnp.maximum(a, b)
+            gap = jnp.maximum(jnp.maximum(lo - p, p - hi), 0.0)
+            return jnp.sqrt(jnp.sum(gap * gap, axis=-1))
 
-        def each_shape(x, known, pts, pair):
+        def screen(x, known, pts, pair):
             sc, w = world(x, known, pts, pair)
-            cfg = jnp.asarray(pair_config)[pair]
             cols = []
-            for s, shape in enumerate(self.shapes):
-                d = jnp.full(pts.shape[0], jnp.inf)
-                for c in range(C):
-                    T = sc.shape_poses[c, s]
-                    local = jnp.sum((w - T[:3, 3])[:, :, None] * T[None, :3, :3], axis=1)
-                    dc = surface_distance(shape.kind, local, sc.shape_dims[c, s], shape.mesh)
-                    d = dc if C == 1 else jnp.where(cfg == c, dc, d)
-                cols.append(d)
+            for s, shape in enumerate(shapes):
+                p, dims = shape_local(sc, s, w, pair)
+                if shape.kind == "mesh":
+                    cols.append(box_bound(shape, p, dims))
+                else:
+                    cols.append(surface_distance(shape.kind, p, dims, shape.mesh))
             return jnp.stack(cols, axis=1), w
+
+        def exact(s):
+            def one(x, known, pts, pair):
+                sc, w = world(x, known, pts, pair)
+                p, dims = shape_local(sc, s, w, pair)
+                return surface_distance(shapes[s].kind, p, dims, shapes[s].mesh)
+
+            return jax.jit(one)
+
+        def nearest(x, known, pts, pair, groups):
+            sc, w = world(x, known, pts, pair)
+            ds, ix = [], []
+            for s, (shape, g) in enumerate(zip(shapes, groups)):
+                valid = g >= 0
+                gi = jnp.where(valid, g, 0)
+                p, dims = shape_local(sc, s, w[gi], pair[gi])
+                d = surface_distance(shape.kind, p, dims, shape.mesh)
+                ds.append(jnp.where(valid, d, jnp.inf))
+                ix.append(gi)
+            if not ds:
+                return jnp.full(pts.shape[0], jnp.inf), w
+            d = jax.ops.segment_min(jnp.concatenate(ds), jnp.concatenate(ix), num_segments=pts.shape[0])
+            return d, w
+
+        def residual(x, pts, pair, weight, known, A, b, *groups):
+            d, _ = nearest(x, known, pts, pair, groups)
+            r = jnp.where(weight > 0, d, 0.0) * weight  # padding rows have no candidates (d = inf)
+            return jnp.concatenate([r, A @ x - b])
 
         def shape_frames(x, known):
             sc = scenes(x, known)
@@ -336,7 +402,8 @@ class _Engine:
         enable_compilation_cache()
         self.residual = residual  # the same object every call: least_squares caches its program on it
         self.jacobian = jax.jit(jax.jacfwd(residual))
-        self.each_shape = jax.jit(each_shape)
+        self.screen = jax.jit(screen)
+        self.exact = {s: exact(s) for s in self.meshes}
         self.world = jax.jit(lambda x, known, pts, pair: world(x, known, pts, pair)[1])
         self.shape_frames = jax.jit(shape_frames)
 
@@ -363,6 +430,74 @@ def _engine(model: Model, ps: ParameterSet, pairs: tuple[tuple[int, int], ...]) 
 
 def _pad(n: int) -> int:
     return max(BUCKET, -(-n // BUCKET) * BUCKET)
+
+
+def _size_class(n: int) -> int:
+    """The padded size of an array of n entries: 16, 32, ..., 4096, then multiples of 4096 (few
+    sizes, so that compiled programs are reused)."""
+    c = 16
+    while c < n and c < BUCKET:
+        c *= 2
+    return c if c >= n else -(-n // BUCKET) * BUCKET
+
+
+def _padded(values: np.ndarray, size: int, fill: float | int = 0) -> np.ndarray:
+    out = np.full((size, *values.shape[1:]), fill, dtype=values.dtype)
+    out[: len(values)] = values
+    return out
+
+
+class _Points:
+    """The fit's points padded for the compiled programs, and the screening of their distances."""
+
+    def __init__(self, eng: _Engine, known: np.ndarray, pts: np.ndarray, pair: np.ndarray):
+        self.eng, self.n = eng, len(pts)
+        self.m = _pad(self.n)
+        self.known = to_device(known)
+        self.P = to_device(_padded(pts, self.m))
+        self.Q = to_device(_padded(pair, self.m))
+        self.pts, self.pair = pts, pair
+
+    def screen(self, x: np.ndarray, margin: float) -> tuple[np.ndarray, np.ndarray]:
+        """(n, S) distances of every point to every shape at x — exact where it can matter: a
+        mesh's only where its bounding box is within ``margin`` of the nearest other shape (a
+        lower bound elsewhere) — and the (n, 3) world points."""
+        eng, n = self.eng, self.n
+        xd = to_device(np.asarray(x, dtype=float))
+        D, W = (np.array(v)[:n] for v in eng.screen(xd, self.known, self.P, self.Q))
+        if eng.meshes:
+            others = [k for k in range(D.shape[1]) if k not in eng.meshes]
+            best = D[:, others].min(axis=1) if others else np.full(n, np.inf)
+            for s in eng.meshes:
+                near = np.nonzero(D[:, s] <= best + margin)[0]
+                if len(near) == 0:
+                    continue
+                k = _size_class(len(near))
+                d = eng.exact[s](
+                    xd, self.known, to_device(_padded(self.pts[near], k)), to_device(_padded(self.pair[near], k))
+                )
+                D[near, s] = np.asarray(d)[: len(near)]
+                best = np.minimum(best, D[:, s])
+        return D, W
+
+    def groups(self, D: np.ndarray, margin: float) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+        """The (n, S) candidate matrix (the shapes within ``margin`` of each point's nearest one)
+        and, per shape, the points it is a candidate for, padded with −1 to a size class; the sizes
+        last compiled for are kept while the counts fit in them."""
+        cand = D <= D.min(axis=1, keepdims=True) + margin
+        counts = cand.sum(axis=0)
+        caps = self.eng.caps
+        fresh = sum(_size_class(int(c)) for c in counts)
+        if caps is None or len(caps) != len(counts) or np.any(counts > np.array(caps)) or sum(caps) > 2 * fresh:
+            # Room to grow (an eighth, and at least 64), so that the next batches of a scene fit.
+            caps = tuple(_size_class(int(c) + max(64, int(c) // 8)) for c in counts)
+            self.eng.caps = caps
+        return cand, tuple(_padded(np.nonzero(cand[:, s])[0], caps[s], -1) for s in range(len(caps)))
+
+
+def _misassigned(D: np.ndarray, cand: np.ndarray) -> bool:
+    """Whether a point's nearest shape (D at the solution) is nearer than all its candidates."""
+    return bool(np.any(D.min(axis=1) < np.where(cand, D, np.inf).min(axis=1) - 1e-9))
 
 
 # ---- priors ---------------------------------------------------------------------------------------------
@@ -472,6 +607,71 @@ def residuals_at(model: Model, scan: Scan, values: Mapping[str, float] | None = 
     return np.asarray(distance_to_shapes(scene.shape_poses, scene.shape_dims, list(model.shapes), jnp.asarray(w)))
 
 
+def scan_measurements(
+    model: Model,
+    scans: Sequence[Scan],
+    *,
+    voxel: float = 0.01,
+    crop: float = 0.10,
+    max_points: int = 2000,
+    values: Mapping[str, float] | None = None,
+    seed: int = 0,
+) -> MeasurementSet:
+    """Scans as ``point_to_surface`` measurements, to sit beside clicked points in one problem
+    (``mbcal solve MODEL clicks.csv scan.ply``).
+
+    Each scan is down-sampled (``voxel``), its points farther than ``crop`` from every modelled
+    surface at ``values`` (default: nominal) are left out, at most ``max_points`` per scan are kept
+    (a seeded random subset), and each point measures its distance to the top-level object that
+    holds its nearest shape there, with the scan's σ.  Points nearest to a shape fixed in the world
+    (no object to name) are left out.
+    """
+    from mbcal.measurements.sets import measurements_from_records  # the measurement layer builds the set
+
+    scene = modeler(model, dict(values or {}), Needs.everything())
+    poses, dims = np.asarray(scene.shape_poses), np.asarray(scene.shape_dims)
+
+    def top(frame: int) -> str | None:
+        if frame < 0:
+            return None
+        while model.frames[frame].parent >= 0:
+            frame = model.frames[frame].parent
+        return model.frames[frame].name
+
+    owner = [top(s.frame) for s in model.shapes]
+    rng = np.random.default_rng(seed)
+    records: list[dict[str, Any]] = []
+    for k, scan in enumerate(scans, start=1):
+        pts = np.asarray(scan.downsampled(voxel), dtype=float)
+        sig = scan.sigmas(pts)
+        world = scan_world_points(model, scan.with_points(pts), values)
+        if not model.shapes:
+            break
+        D = np.stack(
+            [
+                np.asarray(surface_distance(s.kind, (world - poses[i, :3, 3]) @ poses[i, :3, :3], dims[i], s.mesh))
+                for i, s in enumerate(model.shapes)
+            ],
+            axis=1,
+        )
+        nearest = np.argmin(D, axis=1)
+        named = np.array([owner[j] is not None for j in nearest], dtype=bool)
+        keep = np.nonzero((D.min(axis=1) <= crop) & named)[0]
+        if len(keep) > max_points:
+            keep = np.sort(rng.choice(keep, max_points, replace=False))
+        for i in keep:
+            record = {"kind": "point_to_surface", "id": f"scan{k}.{i}", "object": owner[nearest[i]], "sigma": sig[i]}
+            record.update(x=pts[i, 0], y=pts[i, 1], z=pts[i, 2])
+            if scan.frame != "world":
+                record["frame"] = scan.frame
+            records.append(record)
+    if not records:
+        raise SolverError(
+            f"no scan point lies within {crop:g} m of a modelled object", hint="is the scan in the right frame?"
+        )
+    return measurements_from_records(records, model)
+
+
 def fit_scans(
     model: Model,
     scans: Sequence[Scan],
@@ -519,30 +719,21 @@ def fit_scans(
         x = ps.from_dict({k: v for k, v in initial.items() if k in ps.names}, default=x)
     x_start = x.copy()
 
-    def dist(xx, p, pr):
-        n = len(p)
-        m = _pad(n)
-        P = np.zeros((m, 3))
-        P[:n] = p
-        Q = np.zeros(m, dtype=np.int64)
-        Q[:n] = pr
-        D = eng.each_shape(jnp.asarray(xx), jnp.asarray(known), jnp.asarray(P), jnp.asarray(Q))[0]
-        return np.min(np.asarray(D), axis=1)[:n]
-
+    margin = o.assign_margin
+    cloud = _Points(eng, known, pts, pair)
+    D, W = cloud.screen(x, margin)
     coarse = None
     if o.coarse != "never":
-        d0 = dist(x, pts, pair)
-        if o.coarse == "always" or float(np.median(d0)) > o.coarse_distance:
-            W = _world(eng, x, known, pts, pair)
+        if o.coarse == "always" or float(np.median(D.min(axis=1))) > o.coarse_distance:
             target = _model_samples(eng, x, known, W)
             if len(target) >= 10:
                 coarse = _icp(W, target, o.seed)
                 x = _fit_rigid_motion(eng, x, known, coarse)
-    d = dist(x, pts, pair)
-    keep = d <= o.crop
+                D, W = cloud.screen(x, margin)
+    keep = D.min(axis=1) <= o.crop
     cropped = int((~keep).sum())
     far_pts, far_pair = pts[~keep], pair[~keep]
-    pts, pair, sig = pts[keep], pair[keep], sig[keep]
+    pts, pair, sig, D = pts[keep], pair[keep], sig[keep], D[keep]
     if len(pts) < ps.size:
         raise SolverError(
             f"only {len(pts)} scan points lie within {o.crop:g} m of the model at the start",
@@ -550,57 +741,83 @@ def fit_scans(
         )
     if len(pts) > o.max_points:
         sel = np.sort(np.random.default_rng(o.seed).choice(len(pts), o.max_points, replace=False))
-        pts, pair, sig = pts[sel], pair[sel], sig[sel]
-    n = len(pts)
-    m = _pad(n)
-    P = np.zeros((m, 3))
-    P[:n] = pts
-    Q = np.zeros(m, dtype=np.int64)
-    Q[:n] = pair
-    Wt = np.zeros(m)
-    Wt[:n] = 1.0 / sig
+        pts, pair, sig, D = pts[sel], pair[sel], sig[sel], D[sel]
+    cloud = _Points(eng, known, pts, pair)
+    n, m = cloud.n, cloud.m
+    Wt = _padded(1.0 / sig, m)
     A, b = _prior_rows(ps, prior, o.priors)
-    args = (P, Q, Wt, known, A, b)
-    starts = random_starts(x, ps.lower, ps.upper, max(1, o.restarts), o.seed, limits=ps.bounds)
+
+    def arguments(groups: Sequence[np.ndarray], scale: float = 1.0) -> tuple[Any, ...]:
+        rows = (Wt / scale, cloud.known, A / scale, b / scale, *groups)
+        return (cloud.P, cloud.Q, *(to_device(r) for r in rows))
+
+    def solve(starts: np.ndarray, args: tuple[Any, ...], cfg: SolverConfig):
+        return least_squares(eng.residual, starts, args=args, config=cfg, size=m + 2 * ps.size, bounds=ps.bounds)
+
     config = SolverConfig(loss=loss, max_iterations=o.max_iterations, ftol=1e-12, xtol=1e-12, gtol=1e-12)
-    if loss != Loss.LINEAR and o.graduated > 1:
-        # Graduated robustness: a wide loss first, so points that moved far (a lever that turned)
-        # still pull before the nominal loss would dismiss them as outliers.
-        wide = SolverConfig(loss=loss, loss_scale=o.graduated * loss.default_scale, max_iterations=o.max_iterations)
-        first = least_squares(eng.residual, starts, args=args, config=wide, size=m + 2 * ps.size, bounds=ps.bounds)
+
+    def refine(xb: np.ndarray, args: tuple[Any, ...], probes: int) -> tuple[np.ndarray, float, bool]:
+        solved = solve(xb[None], args, config)
+        if solved.best < 0:
+            raise SolverError("the scan fit failed: residuals are not finite at any start")
+        xb = np.asarray(solved.x[0], dtype=float)
+        converged = int(solved.status[0]) > 0 and int(solved.iterations[0]) < o.max_iterations
+        cost = float(solved.cost[0])
+        for _ in range(probes):
+            # Probe along the weakest directions: the nearest surface of a point changes at edges, so
+            # S is only piecewise smooth and Marquardt may stop in a shallow pocket a few σ off.
+            # One start at a time: the program of the solve above, no other to compile.
+            J = np.asarray(eng.jacobian(to_device(xb), *args))
+            e, V = np.linalg.eigh(J.T @ J)
+            best = None
+            for k in range(min(2, ps.size)):
+                step = o.probe_sigma * V[:, k] / np.sqrt(max(e[k], 1e-300))
+                for sign in (1.0, -1.0):
+                    again = solve((xb + sign * step)[None], args, config)
+                    if again.best >= 0 and (best is None or float(again.cost[0]) < float(best.cost[0])):
+                        best = again
+            if best is None or float(best.cost[0]) >= cost - o.probe_gain:
+                break
+            xb, cost = np.asarray(best.x[0], dtype=float), float(best.cost[0])
+            converged = int(best.status[0]) > 0 and int(best.iterations[0]) < o.max_iterations
+        return xb, cost, converged
+
+    cand, groups = cloud.groups(D, margin)
+    args = arguments(groups)
+    # A fit warm-started from a previous posterior (the manager) starts at a tracked minimum: no probes.
+    probes = o.probe_rounds if prior is None else 0
+    starts = random_starts(x, ps.lower, ps.upper, max(1, o.restarts), o.seed, limits=ps.bounds)
+    # Graduated robustness: a wide loss first, so points that moved far (a lever that turned) still
+    # pull before the nominal loss would dismiss them as outliers.  The loss with the scale k·c on
+    # r is k² times the loss with c on r/k: the same compiled program on rows scaled by 1/k.
+    graduated = loss != Loss.LINEAR and o.graduated > 1
+    if graduated or len(starts) > 1:
+        first = solve(starts, arguments(groups, o.graduated if graduated else 1.0), config)
         if first.best >= 0:
-            starts = first.x
-    solved = least_squares(eng.residual, starts, args=args, config=config, size=m + 2 * ps.size, bounds=ps.bounds)
-    if solved.best < 0:
-        raise SolverError("the scan fit failed: residuals are not finite at any start")
-    xb = np.asarray(solved.x[solved.best], dtype=float)
-    converged = int(solved.status[solved.best]) > 0 and int(solved.iterations[solved.best]) < o.max_iterations
-    cost = float(solved.cost[solved.best])
-    for _ in range(o.probe_rounds):
-        # Probe along the weakest directions: the nearest surface of a point changes at edges, so
-        # S is only piecewise smooth and Marquardt may stop in a shallow pocket a few σ off.
-        J = np.asarray(eng.jacobian(jnp.asarray(xb), *(jnp.asarray(a) for a in args)))
-        e, V = np.linalg.eigh(J.T @ J)
-        probes = [xb]
-        for k in range(min(2, ps.size)):
-            step = o.probe_sigma * V[:, k] / np.sqrt(max(e[k], 1e-300))
-            probes += [xb + step, xb - step]
-        again = least_squares(
-            eng.residual, np.array(probes), args=args, config=config, size=m + 2 * ps.size, bounds=ps.bounds
-        )
-        if again.best < 0 or float(again.cost[again.best]) >= cost - 1e-9 * max(cost, 1.0):
+            x = np.asarray(first.x[first.best], dtype=float)
+            D, _ = cloud.screen(x, margin)
+            if _misassigned(D, cand):
+                cand, groups = cloud.groups(D, margin)
+                args = arguments(groups)
+    xb, cost, converged = refine(x, args, probes)
+    # The candidates were chosen before the solve; where the solution moved so far that a point's
+    # nearest shape is no longer among them, choose them again there and solve again (at most 3 times;
+    # still misassigned after that: the solution is not a minimum of S, not converged).
+    for attempt in range(4):
+        D, Wpts = cloud.screen(xb, margin)
+        if not _misassigned(D, cand):
             break
-        xb, cost = np.asarray(again.x[again.best], dtype=float), float(again.cost[again.best])
-        converged = int(again.status[again.best]) > 0 and int(again.iterations[again.best]) < o.max_iterations
+        if attempt == 3:
+            converged = False
+            break
+        cand, groups = cloud.groups(D, margin)
+        args = arguments(groups)
+        xb, cost, converged = refine(xb, args, probes)
     # Per point and shape distances at the solution: outliers, association, misfit per object.
-    D, Wpts = (
-        np.asarray(v) for v in eng.each_shape(jnp.asarray(xb), jnp.asarray(known), jnp.asarray(P), jnp.asarray(Q))
-    )
-    D, Wpts = D[:n], Wpts[:n]
     nearest = np.argmin(D, axis=1)
     res = D[np.arange(n), nearest]
     outlier = res > o.outlier_sigma * sig
-    J = np.asarray(eng.jacobian(jnp.asarray(xb), *(jnp.asarray(a) for a in args)))
+    J = np.asarray(eng.jacobian(to_device(xb), *args))
     Jm = J[:n][~outlier]
     Jp = J[m:]
     info = Jm.T @ Jm + Jp.T @ Jp
@@ -647,13 +864,9 @@ def fit_scans(
 
 
 def _world(eng: _Engine, x: np.ndarray, known: np.ndarray, pts: np.ndarray, pair: np.ndarray) -> np.ndarray:
-    n = len(pts)
-    m = _pad(n)
-    P = np.zeros((m, 3))
-    P[:n] = pts
-    Q = np.zeros(m, dtype=np.int64)
-    Q[:n] = pair
-    return np.asarray(eng.world(jnp.asarray(x), jnp.asarray(known), jnp.asarray(P), jnp.asarray(Q)))[:n]
+    m = _pad(len(pts))
+    args = (np.asarray(x, dtype=float), known, _padded(pts, m), _padded(pair, m))
+    return np.asarray(eng.world(*(to_device(a) for a in args)))[: len(pts)]
 
 
 def _misfits(model: Model, nearest: np.ndarray, outlier: np.ndarray, res: np.ndarray, o: FitOptions) -> list[Misfit]:

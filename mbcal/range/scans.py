@@ -152,7 +152,14 @@ def voxel_downsample(points: np.ndarray, size: float) -> np.ndarray:
     if size <= 0 or len(points) == 0:
         return points
     keys = np.floor(points / size).astype(np.int64)
-    _, first = np.unique(keys, axis=0, return_index=True)
+    keys -= keys.min(axis=0)
+    span = keys.max(axis=0) + 1
+    if float(np.prod(span.astype(float))) < 2.0**62:
+        # One integer per cube (a 1-D sort is several times faster than unique rows).
+        flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
+        _, first = np.unique(flat, return_index=True)
+    else:
+        _, first = np.unique(keys, axis=0, return_index=True)
     return points[np.sort(first)]
 
 

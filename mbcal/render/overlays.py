@@ -15,7 +15,7 @@ import numpy as np
 
 from mbcal._jax import jax
 from mbcal.outputs import atomic_write
-from mbcal.render.views import Layer, draw_overlay, render_view, save_png, wireframe_layer
+from mbcal.render.views import Layer, draw_overlay, render_view, save_png, shared_context, wireframe_layer
 
 __all__ = ["calibration_overlays", "residual_plot", "BEFORE", "AFTER", "MEASURED"]
 
@@ -78,45 +78,49 @@ def calibration_overlays(
     index = {m.id: i for i, m in enumerate(problem.measurements.measurements)}
     # Compiled (issue 16; the modeler op by op took ~0.6 s a call), once for all cameras and configurations.
     whole_before, whole_after = problem.whole_scenes(before_x), problem.whole_scenes(result.x)
-    for (camera, config), members in list(groups.items())[:max_images]:
-        c = configs.index(config)
-        scene_before = _config_scene(whole_before, c)
-        scene_after = _config_scene(whole_after, c)
-        view_before = render_view(scene_before, camera)
-        view_after = render_view(scene_after, camera)
-        background = backgrounds.get(camera)
-        if background is None:
-            background = (0.55 * view_after.color + 0.45 * 255).astype(np.uint8)
-        measured = np.array([r.measured for r in members])
-        after = np.array([r.predicted for r in members])
-        before = np.array([predicted_before[problem.measurement_rows[index[r.id]]] for r in members])
-        stem = f"{_safe(model.short_name('camera', camera))}" + ("" if config == "default" else f"_{_safe(config)}")
-        img = draw_overlay(
-            background,
-            [
-                wireframe_layer(scene_before, camera, view_before, BEFORE, "model before calibration"),
-                Layer("vectors", np.stack([before, measured], axis=1), RESIDUAL, 1.5, "residual (model → measured)"),
-                Layer("points", measured, MEASURED, 1.5, "measured points"),
-            ],
-        )
-        save_png(img, out_dir / f"{stem}_before.png")
-        tips = after + vector_scale * (measured - after)
-        img = draw_overlay(
-            background,
-            [
-                wireframe_layer(scene_after, camera, view_after, AFTER, "model after calibration"),
-                Layer(
-                    "vectors",
-                    np.stack([after, tips], axis=1),
-                    RESIDUAL,
-                    1.5,
-                    f"residual × {vector_scale:g} (model → measured)",
-                ),
-                Layer("points", measured, MEASURED, 1.5, "measured points"),
-            ],
-        )
-        save_png(img, out_dir / f"{stem}_after.png")
-        written += [out_dir / f"{stem}_before.png", out_dir / f"{stem}_after.png"]
+    with shared_context():  # one OpenGL context for every view (issue 16)
+        for (camera, config), members in list(groups.items())[:max_images]:
+            c = configs.index(config)
+            scene_before = _config_scene(whole_before, c)
+            scene_after = _config_scene(whole_after, c)
+            background = backgrounds.get(camera)
+            # The wireframes need depth only; the shaded pass is drawn only as a missing background.
+            view_before = render_view(scene_before, camera, color=False)
+            view_after = render_view(scene_after, camera, color=background is None)
+            if background is None:
+                background = (0.55 * view_after.color + 0.45 * 255).astype(np.uint8)
+            measured = np.array([r.measured for r in members])
+            after = np.array([r.predicted for r in members])
+            before = np.array([predicted_before[problem.measurement_rows[index[r.id]]] for r in members])
+            stem = f"{_safe(model.short_name('camera', camera))}" + ("" if config == "default" else f"_{_safe(config)}")
+            img = draw_overlay(
+                background,
+                [
+                    wireframe_layer(scene_before, camera, view_before, BEFORE, "model before calibration"),
+                    Layer(
+                        "vectors", np.stack([before, measured], axis=1), RESIDUAL, 1.5, "residual (model → measured)"
+                    ),
+                    Layer("points", measured, MEASURED, 1.5, "measured points"),
+                ],
+            )
+            save_png(img, out_dir / f"{stem}_before.png")
+            tips = after + vector_scale * (measured - after)
+            img = draw_overlay(
+                background,
+                [
+                    wireframe_layer(scene_after, camera, view_after, AFTER, "model after calibration"),
+                    Layer(
+                        "vectors",
+                        np.stack([after, tips], axis=1),
+                        RESIDUAL,
+                        1.5,
+                        f"residual × {vector_scale:g} (model → measured)",
+                    ),
+                    Layer("points", measured, MEASURED, 1.5, "measured points"),
+                ],
+            )
+            save_png(img, out_dir / f"{stem}_after.png")
+            written += [out_dir / f"{stem}_before.png", out_dir / f"{stem}_after.png"]
     return written
 
 

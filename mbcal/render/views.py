@@ -11,9 +11,12 @@ mode): multisampled depth mixes the values of the surfaces that meet at an edge.
 
 from __future__ import annotations
 
+import atexit
+import contextlib
 import io
 import os
-from collections.abc import Sequence
+import threading
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -24,7 +27,7 @@ from mbcal.geometry.camera import project_camera_points
 from mbcal.geometry.shapes import get_shape, shape_mesh
 from mbcal.outputs import atomic_write
 
-__all__ = ["RenderError", "View", "render_view", "wireframe_segments", "draw_overlay", "save_png"]
+__all__ = ["RenderError", "View", "render_view", "shared_context", "wireframe_segments", "draw_overlay", "save_png"]
 
 # OpenCV camera axes (x right, y down, z forward) → OpenGL's (x right, y up, z backward).
 _CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -87,6 +90,8 @@ def render_view(
     points: bool = False,
     point_radius: float = 0.004,
     background: tuple[float, float, float] = (0.92, 0.93, 0.95),
+    color: bool = True,
+    depth: bool = True,
 ) -> View:
     """Render a single scene (not a batch) from a model camera.
 
@@ -97,6 +102,10 @@ def render_view(
         Camera name (a unique suffix is enough).
     points : bool
         Add small spheres at the named points.
+    color, depth : bool
+        Which passes to render: the shaded image, and the depth with the shape index.  A pass
+        left out costs nothing and its arrays are empty (shape (0, 0, 3) and (0, 0)), so that a
+        use of them fails rather than draws something wrong.
     """
     pyrender = _pyrender()
     import trimesh  # with pyrender: rendering's optional dependencies load on first use
@@ -135,20 +144,79 @@ def render_view(
     pr_scene.add(camera_node, pose=T_gl)
     light = pyrender.DirectionalLight(color=np.ones(3), intensity=3.0)
     pr_scene.add(light, pose=T_gl)
-    try:
-        renderer = pyrender.OffscreenRenderer(cam.width, cam.height)
-    except Exception as err:
-        raise RenderError(
-            f"cannot open an off-screen OpenGL context ({type(err).__name__}: {err})",
-            hint="install Mesa's EGL (libegl1 libegl-mesa0 libgl1-mesa-dri) or set PYOPENGL_PLATFORM=osmesa",
-        ) from None
-    try:
-        color, _ = renderer.render(pr_scene)
-        seg, depth = renderer.render(pr_scene, flags=pyrender.RenderFlags.SEG, seg_node_map=seg_map)
-    finally:
-        renderer.delete()
+    with _RENDERER.lock:
+        renderer = _RENDERER.get(pyrender, cam.width, cam.height)
+        try:
+            image = renderer.render(pr_scene)[0][..., :3] if color else np.zeros((0, 0, 3), np.uint8)
+            if depth:
+                seg, z = renderer.render(pr_scene, flags=pyrender.RenderFlags.SEG, seg_node_map=seg_map)
+            else:
+                seg, z = np.zeros((0, 0, 3), np.uint8), np.zeros((0, 0))
+        except BaseException:
+            _RENDERER.close()  # a context in an unknown state: the next view opens a new one
+            raise
+        if not _RENDERER.scopes:
+            _RENDERER.close()
     index = seg[..., 0].astype(np.int64) * 65536 + seg[..., 1].astype(np.int64) * 256 + seg[..., 2]
-    return View(color=np.ascontiguousarray(color[..., :3]), depth=np.asarray(depth, dtype=float), shape_index=index - 1)
+    return View(color=np.ascontiguousarray(image), depth=np.asarray(z, dtype=float), shape_index=index - 1)
+
+
+@contextlib.contextmanager
+def shared_context() -> Iterator[None]:
+    """Render every view inside the block with one off-screen OpenGL context.
+
+    Opening a context (~60 ms with Mesa) and closing one (pyrender's ``delete`` runs a full
+    garbage collection: ~50 ms in a process that holds JAX's programs) cost more than a view
+    itself: ``mbcal demo`` draws six (issue 16).  Outside such a block each view opens and closes
+    its own, because closing any pyrender context terminates the EGL display that every context
+    of the process shares (a depth simulation between two views would break a kept context).
+    Blocks nest; the context is closed when the outermost one ends.
+    """
+    with _RENDERER.lock:
+        _RENDERER.scopes += 1
+    try:
+        yield
+    finally:
+        with _RENDERER.lock:
+            _RENDERER.scopes -= 1
+            if not _RENDERER.scopes:
+                _RENDERER.close()
+
+
+class _SharedRenderer:
+    """The context of :func:`render_view`, used under a lock and kept while a
+    :func:`shared_context` block is open.  pyrender makes it current for each render, resizes it
+    when a view's size differs, and drops the previous scene's meshes from it when the next scene
+    is drawn."""
+
+    def __init__(self) -> None:
+        self.lock = threading.RLock()
+        self.scopes = 0
+        self._renderer: Any = None
+        atexit.register(self.close)
+
+    def get(self, pyrender: Any, width: int, height: int) -> Any:
+        if self._renderer is None:
+            try:
+                self._renderer = pyrender.OffscreenRenderer(width, height)
+            except Exception as err:
+                raise RenderError(
+                    f"cannot open an off-screen OpenGL context ({type(err).__name__}: {err})",
+                    hint="install Mesa's EGL (libegl1 libegl-mesa0 libgl1-mesa-dri) or set PYOPENGL_PLATFORM=osmesa",
+                ) from None
+        self._renderer.viewport_width, self._renderer.viewport_height = width, height
+        return self._renderer
+
+    def close(self) -> None:
+        renderer, self._renderer = self._renderer, None
+        if renderer is not None:
+            try:
+                renderer.delete()
+            except Exception:  # a context that is already gone: nothing to free
+                pass
+
+
+_RENDERER = _SharedRenderer()
 
 
 def _index_color(i: int) -> np.ndarray:
@@ -269,11 +337,23 @@ def _font(size: int):
     from PIL import ImageFont  # pillow: loaded when a picture is drawn
 
     try:
-        from matplotlib import font_manager  # heavy: only to find a font file
-
-        return ImageFont.truetype(font_manager.findfont("DejaVu Sans", fallback_to_default=True), size)
+        return ImageFont.truetype(_font_file(), size)
     except Exception:  # no matplotlib font: the default font lacks some symbols but works
         return ImageFont.load_default()
+
+
+def _font_file() -> str:
+    """matplotlib's copy of DejaVu Sans, found without importing matplotlib (~0.25 s, issue 16)."""
+    import importlib.util  # only to find the file
+
+    spec = importlib.util.find_spec("matplotlib")
+    for folder in (spec.submodule_search_locations or []) if spec is not None else []:
+        path = os.path.join(folder, "mpl-data", "fonts", "ttf", "DejaVuSans.ttf")
+        if os.path.isfile(path):
+            return path
+    from matplotlib import font_manager  # heavy: a matplotlib laid out differently
+
+    return font_manager.findfont("DejaVu Sans", fallback_to_default=True)
 
 
 def draw_overlay(image: np.ndarray, layers: Sequence[Layer], *, supersample: int = 2, legend: bool = True):
@@ -293,10 +373,15 @@ def draw_overlay(image: np.ndarray, layers: Sequence[Layer], *, supersample: int
         lw = max(1, int(round(layer.width * k)))
         if layer.kind == "wireframe":
             for pixels, visible in layer.data:
+                # Which samples to draw, for the whole run at once (per sample: 0.15 s a demo).
+                xy = np.asarray(pixels, dtype=float).reshape(-1, 2)
+                shown = np.asarray(visible, dtype=bool).reshape(-1)[: len(xy)]
+                xy = xy[: len(shown)]
+                good = (shown & np.isfinite(xy).all(axis=1)).tolist()
                 run = []
-                for p, ok in zip(pixels, visible):
-                    if ok and np.all(np.isfinite(p)):
-                        run.append(((p[0] + 0.5) * k, (p[1] + 0.5) * k))
+                for p, ok in zip(((xy + 0.5) * k).tolist(), good):
+                    if ok:
+                        run.append((p[0], p[1]))
                     elif len(run) > 1:
                         draw.line(run, fill=layer.color, width=lw)
                         run = []

@@ -43,6 +43,8 @@ from mbcal.text import fmt, table
 
 __all__ = [
     "homography",
+    "homographies",
+    "poses_from_homographies",
     "intrinsics_from_homographies",
     "pose_from_homography",
     "rpy_from_matrix",
@@ -63,10 +65,49 @@ DISTORTION_NAMES = ("k1", "k2", "p1", "p2", "k3")
 # ---- Zhang's closed form ------------------------------------------------------------------------
 
 
-def _normalizer(p: np.ndarray) -> np.ndarray:
-    mean = p.mean(axis=0)
-    scale = math.sqrt(2.0) / max(np.mean(np.linalg.norm(p - mean, axis=1)), 1e-12)
-    return np.array([[scale, 0, -scale * mean[0]], [0, scale, -scale * mean[1]], [0, 0, 1.0]])
+def _normalizers(p: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Hartley's similarity (V, 3, 3) per view of padded points (V, L, 2) with a mask (V, L):
+    centroid to the origin, mean distance √2."""
+    count = np.maximum(mask.sum(axis=1), 1)
+    mean = np.sum(p * mask[..., None], axis=1) / count[:, None]
+    spread = np.sum(np.linalg.norm(p - mean[:, None, :], axis=2) * mask, axis=1) / count
+    scale = math.sqrt(2.0) / np.maximum(spread, 1e-12)
+    T = np.zeros((len(p), 3, 3))
+    T[:, 0, 0] = T[:, 1, 1] = scale
+    T[:, :2, 2] = -scale[:, None] * mean
+    T[:, 2, 2] = 1.0
+    return T
+
+
+def homographies(src: np.ndarray, dst: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """H (V, 3, 3) with dst ~ H·src for V views at once (normalised DLT, Hartley's scaling).
+
+    ``src``, ``dst``: (V, L, 2) point sets padded to a common length L; ``mask`` (V, L) marks the
+    real points (default: all).  Padded points give zero rows of the DLT system, which change
+    neither its singular values nor its null vector: every view gets exactly the homography of its
+    own points, all from one stacked SVD."""
+    src, dst = np.asarray(src, float), np.asarray(dst, float)
+    mask = np.ones(src.shape[:2], dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
+    if np.any(mask.sum(axis=1) < 4):
+        raise MbcalError("a homography needs at least 4 points")
+    Ts, Td = _normalizers(src, mask), _normalizers(dst, mask)
+    s = np.einsum("vij,vlj->vli", Ts[:, :2, :2], src) + Ts[:, None, :2, 2]
+    d = np.einsum("vij,vlj->vli", Td[:, :2, :2], dst) + Td[:, None, :2, 2]
+    V, L = mask.shape
+    x, y, u, v = s[..., 0], s[..., 1], d[..., 0], d[..., 1]
+    one, zero = np.ones_like(x), np.zeros_like(x)
+    rows = np.empty((V, L, 2, 9))
+    rows[:, :, 0] = np.stack([-x, -y, -one, zero, zero, zero, u * x, u * y, u], axis=-1)
+    rows[:, :, 1] = np.stack([zero, zero, zero, -x, -y, -one, v * x, v * y, v], axis=-1)
+    rows *= mask[:, :, None, None]
+    A = rows.reshape(V, 2 * L, 9)
+    if 2 * L < 9:  # 4 points (8 rows): pad to 9 rows so that the thin SVD holds the null vector
+        A = np.concatenate([A, np.zeros((V, 9 - 2 * L, 9))], axis=1)
+    # All of V but not the 2L × 2L U (issue 15): the thin SVD of each (2L, 9) system.
+    _, _, Vt = np.linalg.svd(A, full_matrices=False)
+    Hn = Vt[:, -1].reshape(V, 3, 3)
+    H = np.linalg.solve(Td, Hn) @ Ts
+    return H / H[:, 2:3, 2:3]
 
 
 def homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -74,45 +115,34 @@ def homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     src, dst = np.asarray(src, float), np.asarray(dst, float)
     if len(src) < 4:
         raise MbcalError("a homography needs at least 4 points")
-    Ts, Td = _normalizer(src), _normalizer(dst)
-    s = (np.c_[src, np.ones(len(src))] @ Ts.T)[:, :2]
-    d = (np.c_[dst, np.ones(len(dst))] @ Td.T)[:, :2]
-    rows = []
-    for (x, y), (u, v) in zip(s, d):
-        rows.append([-x, -y, -1, 0, 0, 0, u * x, u * y, u])
-        rows.append([0, 0, 0, -x, -y, -1, v * x, v * y, v])
-    # All of V but not the 2n × 2n U (issue 15); with 4 points (8 rows) the thin SVD lacks the null vector.
-    _, _, Vt = np.linalg.svd(np.asarray(rows), full_matrices=len(rows) < 9)
-    Hn = Vt[-1].reshape(3, 3)
-    H = np.linalg.inv(Td) @ Hn @ Ts
-    return H / H[2, 2]
+    return homographies(src[None], dst[None])[0]
 
 
 def _v(H: np.ndarray, i: int, j: int) -> np.ndarray:
-    h = H.T  # h[k] is column k of H
-    return np.array(
+    """Zhang's v_ij (…, 6) of homographies (…, 3, 3): h_iᵀ B h_j = v_ijᵀ b."""
+    hi, hj = H[..., :, i], H[..., :, j]  # columns i and j
+    return np.stack(
         [
-            h[i][0] * h[j][0],
-            h[i][0] * h[j][1] + h[i][1] * h[j][0],
-            h[i][1] * h[j][1],
-            h[i][2] * h[j][0] + h[i][0] * h[j][2],
-            h[i][2] * h[j][1] + h[i][1] * h[j][2],
-            h[i][2] * h[j][2],
-        ]
+            hi[..., 0] * hj[..., 0],
+            hi[..., 0] * hj[..., 1] + hi[..., 1] * hj[..., 0],
+            hi[..., 1] * hj[..., 1],
+            hi[..., 2] * hj[..., 0] + hi[..., 0] * hj[..., 2],
+            hi[..., 2] * hj[..., 1] + hi[..., 1] * hj[..., 2],
+            hi[..., 2] * hj[..., 2],
+        ],
+        axis=-1,
     )
 
 
-def intrinsics_from_homographies(Hs: Sequence[np.ndarray], *, skew: bool = True) -> np.ndarray:
+def intrinsics_from_homographies(Hs: Sequence[np.ndarray] | np.ndarray, *, skew: bool = True) -> np.ndarray:
     """The camera matrix K from ≥ 3 plane homographies (≥ 2 with ``skew=False``)."""
-    rows: list[np.ndarray | list[int]] = []
-    for H in Hs:
-        rows.append(_v(H, 0, 1))
-        rows.append(_v(H, 0, 0) - _v(H, 1, 1))
+    H = np.asarray(Hs, dtype=float).reshape(-1, 3, 3)
+    rows = np.stack([_v(H, 0, 1), _v(H, 0, 0) - _v(H, 1, 1)], axis=1).reshape(-1, 6)
     if not skew:
-        rows.append([0, 1, 0, 0, 0, 0])  # B12 = 0  ⇔  γ = 0
+        rows = np.vstack([rows, [0, 1, 0, 0, 0, 0]])  # B12 = 0  ⇔  γ = 0
     if len(rows) < 5:
-        raise MbcalError(f"{len(Hs)} views are too few to initialise the camera matrix (3 needed, 2 without skew)")
-    _, _, Vt = np.linalg.svd(np.asarray(rows, float))
+        raise MbcalError(f"{len(H)} views are too few to initialise the camera matrix (3 needed, 2 without skew)")
+    _, _, Vt = np.linalg.svd(rows, full_matrices=len(rows) < 6)  # V only: not the (2V)² U
     b = Vt[-1]
     if b[0] < 0:
         b = -b
@@ -127,19 +157,27 @@ def intrinsics_from_homographies(Hs: Sequence[np.ndarray], *, skew: bool = True)
     return np.array([[alpha, gamma, u0], [0.0, beta, v0], [0.0, 0.0, 1.0]])
 
 
+def poses_from_homographies(K: np.ndarray, Hs: np.ndarray) -> np.ndarray:
+    """T (V, 4, 4): the pose of a plane z = 0 in the camera frame from each of V homographies."""
+    A = np.linalg.solve(K, np.asarray(Hs, dtype=float).reshape(-1, 3, 3))
+    lam = 1.0 / np.linalg.norm(A[:, :, 0], axis=1)
+    lam = np.where(lam * A[:, 2, 2] < 0, -lam, lam)  # the target is in front of the camera
+    r1, r2, t = lam[:, None] * A[:, :, 0], lam[:, None] * A[:, :, 1], lam[:, None] * A[:, :, 2]
+    R = np.stack([r1, r2, np.cross(r1, r2)], axis=2)
+    U, _, Vt = np.linalg.svd(R)  # the nearest rotation
+    flip = np.linalg.det(U @ Vt) < 0
+    U[flip, :, 2] *= -1
+    T = np.zeros((len(A), 4, 4))
+    T[:, :3, :3] = U @ Vt
+    T[:, :3, 3] = t
+    T[:, 3, 3] = 1.0
+    return T
+
+
 def pose_from_homography(K: np.ndarray, H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """R (3, 3) and t (3,) of a plane z = 0 in the camera frame from its homography."""
-    A = np.linalg.inv(K) @ H
-    lam = 1.0 / np.linalg.norm(A[:, 0])
-    if (lam * A[:, 2])[2] < 0:  # the target is in front of the camera
-        lam = -lam
-    r1, r2, t = lam * A[:, 0], lam * A[:, 1], lam * A[:, 2]
-    R = np.column_stack([r1, r2, np.cross(r1, r2)])
-    U, _, Vt = np.linalg.svd(R)
-    R = U @ Vt
-    if np.linalg.det(R) < 0:
-        R = U @ np.diag([1, 1, -1]) @ Vt
-    return R, t
+    T = poses_from_homographies(K, H[None])[0]
+    return T[:3, :3], T[:3, 3]
 
 
 def _T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -190,46 +228,101 @@ def _average_pose(Ts: list[np.ndarray]) -> np.ndarray:
     return _T(Rm, np.mean([T[:3, 3] for T in Ts], axis=0))
 
 
+def _rpy_many(R: np.ndarray) -> np.ndarray:
+    """(V, 3) roll, pitch, yaw of rotations (V, 3, 3): :func:`rpy_from_matrix` for many at once."""
+    pitch = np.arctan2(-R[:, 2, 0], np.hypot(R[:, 0, 0], R[:, 1, 0]))
+    return np.stack([np.arctan2(R[:, 2, 1], R[:, 2, 2]), pitch, np.arctan2(R[:, 1, 0], R[:, 0, 0])], axis=1)
+
+
+class _PlanarPoints:
+    """The image points of planar targets in a measurement set, as arrays: per measurement its
+    camera, configuration and target frame, the point on the target plane (xy, from the point's
+    position evaluated once per point) and the pixels; grouped by (camera, configuration, frame)
+    in order of first appearance."""
+
+    def __init__(self, model: Model, data: MeasurementSet, X0: np.ndarray):
+        planar: dict[str, tuple[int, np.ndarray] | None] = {}
+        camera_of: dict[str, int] = {}
+        config_of: dict[str, int] = {}
+        keys: list[tuple[int, int, int]] = []
+        xy: list[np.ndarray] = []
+        uv: list[Any] = []
+        for m in data:
+            if m.kind != "image_point" or m.value is None:
+                continue
+            name = m.refs["point"]
+            if name not in planar:
+                p = model.points[model.point_index(name)]
+                planar[name] = None
+                if p.frame >= 0:
+                    local = np.asarray(ir.evaluate(p.position, X0, {}, np), dtype=float)
+                    if abs(local[2]) <= 1e-9:  # on a planar target's z = 0 plane
+                        planar[name] = (p.frame, local[:2])
+            entry = planar[name]
+            if entry is None:
+                continue
+            cam = m.refs["camera"]
+            if cam not in camera_of:
+                camera_of[cam] = model.camera_index(cam)
+            keys.append((camera_of[cam], config_of.setdefault(m.config, len(config_of)), entry[0]))
+            xy.append(entry[1])
+            uv.append(m.value)
+        self.configs = list(config_of)
+        key = np.asarray(keys, dtype=np.int64).reshape(-1, 3)
+        self.xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+        self.uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+        unique, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+        order = np.argsort(first, kind="stable")  # groups in order of first appearance
+        rank = np.empty(len(order), dtype=np.int64)
+        rank[order] = np.arange(len(order))
+        self.keys = unique[order]  # (K, 3): camera, configuration, frame
+        self.group = rank[np.ravel(inverse)] if len(key) else np.zeros(0, dtype=np.int64)
+        self.count = np.bincount(self.group, minlength=len(self.keys))
+
+    def padded(self, groups: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Target-plane points, pixels (len(groups), L, 2) and the mask (len(groups), L) of some groups."""
+        slot = np.full(len(self.keys), -1, dtype=np.int64)
+        slot[groups] = np.arange(len(groups))
+        rows = np.nonzero(slot[self.group] >= 0)[0]
+        g = slot[self.group[rows]]
+        order = np.argsort(g, kind="stable")
+        rows, g = rows[order], g[order]
+        start = np.concatenate([[0], np.cumsum(np.bincount(g, minlength=len(groups)))])
+        within = np.arange(len(rows)) - start[g]
+        L = int(self.count[groups].max())
+        src, dst = np.zeros((len(groups), L, 2)), np.zeros((len(groups), L, 2))
+        mask = np.zeros((len(groups), L), dtype=bool)
+        src[g, within], dst[g, within], mask[g, within] = self.xy[rows], self.uv[rows], True
+        return src, dst, mask
+
+
 def initial_values(model: Model, data: MeasurementSet, unknown: Sequence[str]) -> dict[str, float]:
     """Initial values of a camera calibration's unknowns by Zhang's method (see the module doc).
 
     Returns ``{unknown name: value}`` for the unknowns it can initialise; the rest keep their
-    nominal values.  ``unknown`` are the expanded unknown names (``board.x@view3``).
+    nominal values.  ``unknown`` are the expanded unknown names (``board.x@view3``).  Vectorised
+    over the views (issue 15): each point's position is evaluated once, the homographies of all
+    views come from one stacked SVD, the poses from batched products.
     """
     unknown_set = set(unknown)
     X0 = model.nominal
-    scene0 = modeler(model, X0)
-    frame_poses0 = np.asarray(scene0.frame_poses, dtype=float)
+    frame_poses0 = np.asarray(modeler(model, X0).frame_poses, dtype=float)
     values: dict[str, float] = {}
-    # Observations: (camera, config, target frame) → (target-plane xy, pixels)
-    obs: dict[tuple[int, str, int], tuple[list, list]] = {}
-    for m in data:
-        if m.kind != "image_point" or m.value is None:
-            continue
-        p = model.points[model.point_index(m.refs["point"])]
-        if p.frame < 0:
-            continue
-        local = np.asarray(ir.evaluate(p.position, X0, {}, np), dtype=float)
-        if abs(local[2]) > 1e-9:
-            continue  # not on a planar target's z = 0 plane
-        key = (model.camera_index(m.refs["camera"]), m.config, p.frame)
-        obs.setdefault(key, ([], []))
-        obs[key][0].append(local[:2])
-        obs[key][1].append(m.value)
-    cameras = sorted({k[0] for k in obs})
-    poses: dict[tuple[int, str, int], np.ndarray] = {}  # T_camera_target per camera and view
+    obs = _PlanarPoints(model, data, X0)
+    cameras = sorted({int(c) for c in obs.keys[:, 0]})
+    poses: dict[tuple[int, int, int], np.ndarray] = {}  # T_camera_target per (camera, config, frame)
     for ci in cameras:
-        views = {k: (np.asarray(a), np.asarray(b)) for k, (a, b) in obs.items() if k[0] == ci and len(a) >= 4}
-        if not views:
+        groups = np.nonzero((obs.keys[:, 0] == ci) & (obs.count >= 4))[0]
+        if not len(groups):
             continue
-        Hs = {k: homography(a, b) for k, (a, b) in views.items()}
+        Hs = homographies(*obs.padded(groups))
         info = model.cameras[ci]
         intrinsic_names = [_param(n) for n in info.intrinsics]
         skew = intrinsic_names[4] is not None and intrinsic_names[4] in unknown_set
         fitted = [n for n in intrinsic_names[:4] if n is not None and n in unknown_set]
         K = None
         if fitted and len(Hs) >= (3 if skew else 2):
-            K = intrinsics_from_homographies(list(Hs.values()), skew=skew)
+            K = intrinsics_from_homographies(Hs, skew=skew)
             numbers = {
                 intrinsic_names[0]: [K[0, 0]],
                 intrinsic_names[1]: [K[1, 1]],
@@ -248,13 +341,19 @@ def initial_values(model: Model, data: MeasurementSet, unknown: Sequence[str]) -
         if K is None:
             fx, fy, cx, cy, s = (float(ir.evaluate(n, X0, {}, np)) for n in info.intrinsics)
             K = np.array([[fx, s, cx], [0, fy, cy], [0, 0, 1.0]])
-        for k, H in Hs.items():
-            R, t = pose_from_homography(K, H)
-            poses[k] = _T(R, t)
+        for g, T in zip(groups, poses_from_homographies(K, Hs)):
+            poses[tuple(int(k) for k in obs.keys[g])] = T  # type: ignore[index]
     if not poses:
         return values
     reference = cameras[0]
     T_world_ref = frame_poses0[model.cameras[reference].frame]
+    parents: dict[int, np.ndarray] = {}
+
+    def parent_inverse(frame) -> np.ndarray:
+        if frame.parent not in parents:
+            parents[frame.parent] = np.linalg.inv(_frame_world(model, X0, frame.parent))
+        return parents[frame.parent]
+
     # Further cameras: their pose relative to the reference from the views both see.
     T_ref_cam = {reference: np.eye(4)}
     for ci in cameras[1:]:
@@ -265,24 +364,29 @@ def initial_values(model: Model, data: MeasurementSet, unknown: Sequence[str]) -
         frame = model.frames[model.cameras[ci].frame]
         names = _pose_params(frame.pose) if frame.pose is not None else None
         if names and all(n in unknown_set for n in names):
-            T_world_cam = T_world_ref @ T_ref_cam[ci]
-            parent = _frame_world(model, X0, frame.parent)
-            _set_pose(values, names, np.linalg.inv(parent) @ T_world_cam)
+            _set_pose(values, names, parent_inverse(frame) @ T_world_ref @ T_ref_cam[ci])
     # Target poses per view, from the reference camera when it saw the view, else another one.
-    done: set[tuple[str, int]] = set()
-    for (ci, config, target), T_cam_target in sorted(poses.items(), key=lambda kv: kv[0][0] != reference):
-        if (config, target) in done or ci not in T_ref_cam:
-            continue
-        done.add((config, target))
+    chosen: dict[tuple[int, int], tuple[int, int, int]] = {}
+    for k in sorted(poses, key=lambda k: k[0] != reference):
+        if (k[1], k[2]) not in chosen and k[0] in T_ref_cam:
+            chosen[(k[1], k[2])] = k
+    by_frame: dict[int, list[tuple[int, int, int]]] = {}
+    for k in chosen.values():
+        by_frame.setdefault(k[2], []).append(k)
+    for target, ks in by_frame.items():
         frame = model.frames[target]
         names = _pose_params(frame.pose) if frame.pose is not None else None
         if not names:
             continue
-        T_world_target = T_world_ref @ T_ref_cam[ci] @ T_cam_target
-        parent = _frame_world(model, X0, frame.parent)
-        suffix = f"@{config}" if any(f"{n}@{config}" in unknown_set for n in names) else ""
-        if all((n + suffix) in unknown_set for n in names):
-            _set_pose(values, names, np.linalg.inv(parent) @ T_world_target, suffix)
+        T_cam = np.stack([T_world_ref @ T_ref_cam[k[0]] for k in ks])
+        T_local = parent_inverse(frame) @ T_cam @ np.stack([poses[k] for k in ks])
+        pose_numbers = np.concatenate([T_local[:, :3, 3], _rpy_many(T_local[:, :3, :3])], axis=1)
+        for k, row in zip(ks, pose_numbers):
+            config = obs.configs[k[1]]
+            suffix = f"@{config}" if any(f"{n}@{config}" in unknown_set for n in names) else ""
+            if all((n + suffix) in unknown_set for n in names):
+                for name, v in zip(names, row):
+                    values[name + suffix] = float(v)
     return values
 
 
@@ -361,6 +465,7 @@ def calibrate_cameras(
     progress=None,
     fit=None,
     accept_poor_fit: bool = False,
+    analysis: str = "auto",
 ) -> CameraCalibration:
     """Calibrate cameras from image points of planar targets (see the module doc).
 
@@ -375,6 +480,9 @@ def calibrate_cameras(
     fit, accept_poor_fit
         The fit verdict's thresholds (:class:`mbcal.fit.FitConfig`) and whether to accept a poor fit
         (see :class:`mbcal.api.CalibrateOptions`).
+    analysis : str
+        ``auto``, ``dense`` or ``structured``: how the report of a many-view calibration is
+        computed (:attr:`mbcal.api.CalibrateOptions.analysis`; from the blocks beyond about 250 views).
     """
     estimate = list(estimate) if estimate else default_unknowns(model, data)
     params = ParameterSet(model, estimate, configurations=data.config_names, per_configuration=data.configurations)
@@ -392,6 +500,7 @@ def calibrate_cameras(
         progress=progress,
         fit=fit,
         accept_poor_fit=accept_poor_fit,
+        analysis=analysis,
     )
     cams = sorted({m.refs["camera"] for m in data if m.kind == "image_point"}, key=model.camera_index)
     values = result.values

@@ -16,16 +16,18 @@ from pathlib import Path
 
 import numpy as np
 
+from mbcal._jax import jax
 from mbcal.api import calibrate, simulate
 from mbcal.errors import MbcalError
 from mbcal.language import load_model
 from mbcal.language.model import Model
 from mbcal.measurements.io import read_measurements, write_measurements
-from mbcal.modeling import modeler, parameter_vector
+from mbcal.modeling import modeler
 from mbcal.outputs import atomic_write
 from mbcal.render.overlays import calibration_overlays, residual_plot
-from mbcal.render.views import render_view, save_png
+from mbcal.render.views import render_view, save_png, shared_context
 from mbcal.resources import bundled
+from mbcal.scene import Scene
 from mbcal.text import table
 
 __all__ = ["run_demo", "line_of_sight_errors", "DEMO_TRUTH", "SEED_ROOM"]
@@ -58,21 +60,28 @@ def run_demo(out: Path, *, restarts: int = 32, seed: int = 0, quiet: bool = Fals
     model = load_model(model_path)
     plan = read_measurements(bundled("measurements/room_plan.csv"), model)
 
-    step("rendering the camera images of the true room")
-    true_scene = modeler(model, parameter_vector(model, DEMO_TRUTH))
-    images = {cam: render_view(true_scene, cam).color for cam in ("eyes.left", "eyes.right")}
-    for cam, image in images.items():
-        save_png(image, out / f"camera_{cam.split('.')[-1]}.png")
-
     step("clicking the 24 points in both images (simulated, σ = 1 px)")
     data = simulate(model, plan, DEMO_TRUTH, noise=1.0, seed=seed)
     write_measurements(data, out / "clicked_points.csv")
 
     step(f"calibrating the room pose from {restarts} random starts")
     result = calibrate(model, data, ["room.*"], restarts=restarts, seed=seed)
+    # The true, nominal and calibrated scenes from the problem's compiled program (the modeler run
+    # op by op took ~0.15 s a scene, issue 16): the truth differs from the model in the unknowns.
+    problem = result.problem
+    true_scene, nominal_scene, after_scene = (
+        _first_configuration(problem.whole_scenes(x))
+        for x in (problem.params.from_dict(DEMO_TRUTH), problem.params.x0, result.x)
+    )
 
-    step("drawing the model over the camera images, before and after")
-    pictures = calibration_overlays(result, out, backgrounds=images)
+    with shared_context():  # one OpenGL context for the demo's six views (issue 16)
+        step("rendering the camera images of the true room")
+        images = {cam: render_view(true_scene, cam, depth=False).color for cam in ("eyes.left", "eyes.right")}
+        for cam, image in images.items():
+            save_png(image, out / f"camera_{cam.split('.')[-1]}.png")
+
+        step("drawing the model over the camera images, before and after")
+        pictures = calibration_overlays(result, out, backgrounds=images)
     residual_plot(result, out / "residuals.png", title="mbcal demo: the room's pose from 24 stereo points")
     atomic_write(out / "report.json", json.dumps(result.to_json(), indent=1, allow_nan=False) + "\n")
     result.write_model(out / "teleexistence_calibrated.mdl")
@@ -81,10 +90,8 @@ def run_demo(out: Path, *, restarts: int = 32, seed: int = 0, quiet: bool = Fals
 
     # The lever's clicked points: the seed reports its errors there.
     lever = list(dict.fromkeys(m.refs["point"] for m in plan if ".lever." in f".{m.refs['point']}"))
-    X_true = parameter_vector(model, DEMO_TRUTH)
-    before = line_of_sight_errors(model, X_true, model.nominal, lever, "eyes.left")
-    X_after = result.problem.params.X(result.x)[0]
-    after = line_of_sight_errors(model, X_true, X_after, lever, "eyes.left")
+    before = _line_of_sight_errors(true_scene, nominal_scene, lever, "eyes.left")
+    after = _line_of_sight_errors(true_scene, after_scene, lever, "eyes.left")
     predicted = [p for p in result.points if any(p.point.endswith(q) for q in lever) and "left" in (p.camera or "")]
     sigma_perp = max(p.perpendicular for p in predicted) if predicted else float("nan")
     sigma_par = max(p.parallel for p in predicted) if predicted else float("nan")
@@ -144,8 +151,16 @@ def line_of_sight_errors(
     arrays in metres, one entry per point.
     """
     X_true, X_model = np.atleast_2d(X_true), np.atleast_2d(X_model)
-    true = modeler(model, X_true[config])
-    est = modeler(model, X_model[config])
+    return _line_of_sight_errors(modeler(model, X_true[config]), modeler(model, X_model[config]), points, camera)
+
+
+def _first_configuration(scenes: Scene) -> Scene:
+    """The first configuration's scene of :meth:`mbcal.problem.Problem.whole_scenes`."""
+    return jax.tree_util.tree_map(lambda a: a[0], scenes)
+
+
+def _line_of_sight_errors(true: Scene, est: Scene, points: list[str], camera: str) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`line_of_sight_errors` between two scenes."""
     eye = np.asarray(true.camera(camera).center)
     perp, par = [], []
     for p in points:
