@@ -399,7 +399,7 @@ def calibrate(
     if structure is None:
         r, J = problem.residual_and_jacobian(x)
     else:
-        r, J, Jc = dense_jacobian(problem.residual_function, x, structure, args)
+        r, J, Jc = dense_jacobian(problem.residual_function, x, structure, args, cache_key=problem.fingerprint())
     Jm, Jp = J[: problem.size], J[problem.size :]
     rows = _residual_rows(problem, x, r)
     obs = analyze(
@@ -483,7 +483,9 @@ def _calibrate_by_blocks(
     — nothing of size n × n or m × n.  Candidate measurements are not ranked here (that needs the
     dense Jacobian of every candidate)."""
     params = problem.params
-    r, Jc = compressed_jacobian(problem.residual_function, x, structure, (problem.y, params.known))
+    r, Jc = compressed_jacobian(
+        problem.residual_function, x, structure, (problem.y, params.known), cache_key=problem.fingerprint()
+    )
     rows = _residual_rows(problem, x, r)
     obs = observability_structured(
         problem,

@@ -83,6 +83,7 @@ class Problem:
     ):
         self.model = model
         self.measurements = measurements
+        self._fingerprint: str | None = None
         self.params = ParameterSet(
             model,
             list(estimate),
@@ -102,10 +103,13 @@ class Problem:
             refs = {}
             for role in mm.roles:
                 table = "frame" if role.lookup == "object" else role.lookup
+                names = [m.refs[role.name] for m in ms]
+                # each distinct name looked up once (thousands of measurements name a few dozen things)
                 if table == "frame":
-                    refs[role.name] = np.array([model.frame_index(m.refs[role.name]) for m in ms], dtype=np.int64)
+                    index = {name: model.frame_index(name) for name in set(names)}
                 else:
-                    refs[role.name] = np.array([model._lookup(table, m.refs[role.name]) for m in ms], dtype=np.int64)
+                    index = {name: model._lookup(table, name) for name in set(names)}
+                refs[role.name] = np.array([index[name] for name in names], dtype=np.int64)
             data = np.array([[m.data[k] for k in mm.data] for m in ms], dtype=float).reshape(len(ms), len(mm.data))
             batch = Batch(np.array([config_index[m.config] for m in ms], dtype=np.int64), refs, data)
             covs = np.stack([m.cov for m in ms])
@@ -320,6 +324,11 @@ class Problem:
         a changed implementation must never reuse an old program."""
         if runtime_shapes() or runtime_functions():
             return None
+        if self._fingerprint is None:  # the files are hashed once per problem
+            self._fingerprint = self._hash()
+        return self._fingerprint
+
+    def _hash(self) -> str:
         h = Hasher().add(code_fingerprint(), self.size, self.params.names, self.params._source)
         h.add(self.model.text_digest)  # models from text: the text itself (files are hashed below)
         for path in self.model.files:

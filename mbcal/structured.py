@@ -509,12 +509,23 @@ def compressed_jacobian(
     structure: Structure,
     args: tuple = (),
     local: LocalParameterisation | None = None,
+    cache_key: str | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(r, Jc): the residual at x and its compressed Jacobian (m, nb + ks): row i's derivatives
-    with respect to its own block's unknowns (first nb columns) and its group's (last ks)."""
-    program = _compressed_program(fun, structure.nb + structure.ks, None if local is None else _Identity(local))
+    with respect to its own block's unknowns (first nb columns) and its group's (last ks).
+    ``cache_key``: as for :func:`least_squares_structured` (a second process loads the program
+    instead of tracing it: ~0.15 s of a command-line calibration, issue 16)."""
+    c = structure.nb + structure.ks
+    program = _compressed_program(fun, c, None if local is None else _Identity(local))
     args = tuple(to_device(a) for a in args)
-    J, r = program(to_device(x, float), to_device(structure.arrays()["slot"]), args)
+    example = (to_device(x, float), to_device(structure.arrays()["slot"]), args)
+    if cache_key is not None:
+        key = Hasher().add("compressed", cache_key, c, example[0].shape, example[1].shape)
+        key.add([(a.shape, str(a.dtype)) for a in args])
+        if local is not None:
+            key.add("local", type(local).__module__, type(local).__qualname__)
+        program = exported(key.hexdigest(), program, *example)
+    J, r = program(*example)
     return np.asarray(r), np.asarray(J)
 
 
@@ -658,25 +669,42 @@ class StructuredAnalysis:
 def _pinv_sym(M: np.ndarray, rtol: float) -> tuple[np.ndarray, int, np.ndarray]:
     """Pseudo-inverse of a symmetric PSD matrix, with its rank and null vectors, judged on the
     matrix scaled to unit diagonal (so units do not decide the rank)."""
-    d = np.sqrt(np.clip(np.diag(M), 0, None))
+    inv, rank, null = _pinv_sym_stack(M[None], rtol)
+    return inv[0], int(rank[0]), null[0]
+
+
+def _pinv_sym_stack(M: np.ndarray, rtol: float) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """:func:`_pinv_sym` of a stack (B, k, k) in one batched eigendecomposition: the inverses
+    (B, k, k), the ranks (B,) and each matrix's null vectors (k, k − rank)."""
+    d = np.sqrt(np.clip(np.einsum("bii->bi", M), 0, None))
     dn = np.where(d > 0, d, 1.0)
-    Ms = M / dn[:, None] / dn[None, :]
+    Ms = M / dn[:, :, None] / dn[:, None, :]
     w, v = np.linalg.eigh(Ms)
-    top = max(float(w.max()) if w.size else 0.0, 1e-300)
-    keep = w > rtol * top
-    inv_s = (v[:, keep] / w[keep]) @ v[:, keep].T
-    null = v[:, ~keep] / dn[:, None]
-    null = null / np.maximum(np.linalg.norm(null, axis=0), 1e-300)
-    return inv_s / dn[:, None] / dn[None, :], int(keep.sum()), null
+    top = np.maximum(w.max(axis=1, initial=0.0), 1e-300)
+    keep = w > rtol * top[:, None]
+    inv_w = np.where(keep, 1.0 / np.where(keep, w, 1.0), 0.0)
+    inv_s = np.einsum("bik,bk,bjk->bij", v, inv_w, v)
+    k = M.shape[1]
+    nulls = [np.zeros((k, 0))] * len(M)
+    for b in np.flatnonzero(~keep.all(axis=1)):
+        null = v[b][:, ~keep[b]] / dn[b][:, None]
+        nulls[b] = null / np.maximum(np.linalg.norm(null, axis=0), 1e-300)
+    return inv_s / dn[:, :, None] / dn[:, None, :], keep.sum(axis=1), nulls
 
 
 def _segment_products(A: np.ndarray, C: np.ndarray, segment: np.ndarray, count: int) -> np.ndarray:
-    """(count, a, c): Σ over the rows of each segment of A_iᵀ C_i, one weighted count per entry
-    (memory of one column, not of the (m, a, c) products)."""
-    out = np.empty((count, A.shape[1], C.shape[1]))
-    for i in range(A.shape[1]):
-        for j in range(C.shape[1]):
-            out[:, i, j] = np.bincount(segment, weights=A[:, i] * C[:, j], minlength=count)
+    """(count, a, c): Σ over the rows of each segment of A_iᵀ C_i — rows sorted by segment once,
+    then summed in chunks of about 2 M products (never the whole (m, a, c) array)."""
+    a, c = A.shape[1], C.shape[1]
+    out = np.zeros((count, a, c))
+    order = np.argsort(segment, kind="stable")
+    seg = segment[order]
+    step = max(1, 2_000_000 // max(a * c, 1))
+    for s in range(0, len(order), step):
+        rows, sg = order[s : s + step], seg[s : s + step]
+        products = np.einsum("ri,rj->rij", A[rows], C[rows]).reshape(len(rows), a * c)
+        starts = np.flatnonzero(np.r_[True, sg[1:] != sg[:-1]])
+        out[sg[starts]] += np.add.reduceat(products, starts, axis=0).reshape(-1, a, c)
     return out
 
 
@@ -706,12 +734,9 @@ def analyze_structured(
     W = _segment_products(Jb, Js, ix["row_pair"], P)
     names = list(structure.names) if structure.names is not None else [f"x[{j}]" for j in range(structure.n)]
     unobservable: list[dict[str, Any]] = []
-    U_pinv = np.zeros_like(U)
-    rank = 0
-    for b in range(B):
-        inv, rk, null = _pinv_sym(U[b], rtol)
-        U_pinv[b] = inv
-        rank += rk
+    U_pinv, ranks, nulls = _pinv_sym_stack(U, rtol)
+    rank = int(ranks.sum())
+    for b, null in enumerate(nulls):
         for k in range(null.shape[1]):
             combo = {names[structure.blocks[b, i]]: float(null[i, k]) for i in range(nb) if abs(null[i, k]) > 1e-6}
             unobservable.append({"where": f"block {b}", "combination": combo})
@@ -753,11 +778,12 @@ def dense_jacobian(
     structure: Structure,
     args: tuple = (),
     local: LocalParameterisation | None = None,
+    cache_key: str | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(r, J, Jc): the residual, the full m × n Jacobian scattered from the compressed one Jc (one
     forward pass with nb + ks tangents instead of n), and Jc itself.  For the dense analysis of
     problems of moderate size (see :data:`DENSE_ANALYSIS_ENTRIES`)."""
-    r, Jc = compressed_jacobian(fun, x, structure, args, local)
+    r, Jc = compressed_jacobian(fun, x, structure, args, local, cache_key)
     nb = structure.nb
     J = np.zeros((structure.m, structure.n))
     rows = np.arange(structure.m)[:, None]
