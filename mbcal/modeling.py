@@ -12,9 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from mbcal._jax import jnp
+from mbcal._jax import jnp, on_host, to_device
 from mbcal.errors import ParameterError
-from mbcal.geometry import transforms as geo
 from mbcal.language import ir, soa
 from mbcal.language import soa_math as sm
 from mbcal.language.model import JointInfo, Model
@@ -292,8 +291,13 @@ def modeler(
             columns.append(parts[0] if len(parts) == 1 else jnp.concatenate(parts))
         blocks.append(sm.stack_scalars(sm.apply_point(var, tuple(columns))))
         order.extend(constant_index + expression_index)
+    host = on_host(*blocks)
     if not blocks:
-        points = jnp.zeros((len(model.points), 3))
+        points = to_device(np.zeros((len(model.points), 3)))
+    elif host is not None:  # known values (a scene at given numbers): NumPy, then JAX once
+        placed = np.zeros((len(model.points), 3))
+        placed[np.asarray(order, dtype=np.int64)] = np.concatenate(host)
+        points = to_device(placed)
     else:
         stacked = blocks[0] if len(blocks) == 1 else jnp.concatenate([jnp.asarray(b, dtype=float) for b in blocks])
         if len(order) == len(model.points):
@@ -345,7 +349,8 @@ def modeler(
 
 def _stack(items: list[Array], empty_shape: tuple[int, ...]) -> Array:
     if not items:
-        return jnp.zeros(empty_shape)
-    if geo.is_constant(*items):
-        return jnp.asarray(np.stack([np.asarray(i, dtype=float) for i in items]))
+        return to_device(np.zeros(empty_shape))
+    host = on_host(*items)
+    if host is not None:  # known values: stacked in NumPy, handed to JAX once (compiles nothing)
+        return to_device(np.stack(host))
     return jnp.stack([jnp.asarray(i, dtype=float) for i in items])

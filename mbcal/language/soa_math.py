@@ -370,7 +370,13 @@ def to_arrays(value: Any, kind: str) -> Any:
         return stack_scalars(value)
     R, t = value
     rows = [[R[i][0], R[i][1], R[i][2], t[i]] for i in range(3)] + [[0.0, 0.0, 0.0, 1.0]]
-    return jnp().reshape(stack_scalars([v for row in rows for v in row]), (4, 4))
+    flat = stack_scalars([v for row in rows for v in row])
+    from mbcal._jax import on_host, to_device
+
+    host = on_host(flat)
+    if host is not None:  # known values: no compiled reshape (issue 16)
+        return to_device(np.reshape(host[0], host[0].shape[:-1] + (4, 4)))
+    return jnp().reshape(flat, (4, 4))
 
 
 def stack_scalars(values: Sequence[Scalar]) -> Any:
