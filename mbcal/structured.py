@@ -295,15 +295,28 @@ def _normal(Jw: Array, rw: Array, ix: _Arrays, B: int, G: int, P: int, nb: int, 
     return _Normal(U, V, W, gb, gs)
 
 
-def _reduced(Ui: Array, Vd: Array, W: Array, ix: _Arrays, G: int) -> Array:
-    """S = Ṽ − Wᵀ Ũ⁻¹ W as a dense (G·ks, G·ks) matrix, from the block inverses Ũ⁻¹ (B, nb, nb)."""
+def _segment_sum(xp: Any, data: Any, ids: Any, n: int) -> Any:
+    if xp is np:
+        out = np.zeros((n, *data.shape[1:]))
+        np.add.at(out, ids, data)
+        return out
+    return jax.ops.segment_sum(data, ids, n)
+
+
+def _reduced(Ui: Array, Vd: Array, W: Array, ix: _Arrays, G: int, xp: Any = jnp) -> Array:
+    """S = Ṽ − Wᵀ Ũ⁻¹ W as a dense (G·ks, G·ks) matrix, from the block inverses Ũ⁻¹ (B, nb, nb).
+    ``xp``: jax.numpy inside the solver, numpy for the analysis after it (nothing to dispatch)."""
     ks = Vd.shape[-1]
-    Y = jnp.einsum("pij,pjk->pik", Ui[ix.pair_block], W)  # Ũ_b⁻¹ W_p
-    diagonal = jax.ops.segment_sum(jnp.einsum("pij,pik->pjk", W, Y), ix.pair_group, G)  # W_pᵀ Ũ_b⁻¹ W_p
-    contrib = jnp.einsum("qij,qik->qjk", W[ix.pp_a], Y[ix.pp_b])  # W_pᵀ Ũ_b⁻¹ W_q, p < q
-    off = jax.ops.segment_sum(contrib, ix.pp_target, G * G).reshape(G, G, ks, ks)
+    Y = xp.einsum("pij,pjk->pik", Ui[ix.pair_block], W)  # Ũ_b⁻¹ W_p
+    diagonal = _segment_sum(xp, xp.einsum("pij,pik->pjk", W, Y), ix.pair_group, G)  # W_pᵀ Ũ_b⁻¹ W_p
+    contrib = xp.einsum("qij,qik->qjk", W[ix.pp_a], Y[ix.pp_b])  # W_pᵀ Ũ_b⁻¹ W_q, p < q
+    off = _segment_sum(xp, contrib, ix.pp_target, G * G).reshape(G, G, ks, ks)
     off = off + off.transpose(1, 0, 3, 2)
-    full = off.at[jnp.arange(G), jnp.arange(G)].add(diagonal - Vd)
+    if xp is np:
+        off[np.arange(G), np.arange(G)] += diagonal - Vd
+        full = off
+    else:
+        full = off.at[jnp.arange(G), jnp.arange(G)].add(diagonal - Vd)
     return -full.transpose(0, 2, 1, 3).reshape(G * ks, G * ks)
 
 
@@ -702,10 +715,29 @@ def _segment_products(A: np.ndarray, C: np.ndarray, segment: np.ndarray, count: 
     step = max(1, 2_000_000 // max(a * c, 1))
     for s in range(0, len(order), step):
         rows, sg = order[s : s + step], seg[s : s + step]
-        products = np.einsum("ri,rj->rij", A[rows], C[rows]).reshape(len(rows), a * c)
+        products = (A[rows][:, :, None] * C[rows][:, None, :]).reshape(len(rows), a * c)
         starts = np.flatnonzero(np.r_[True, sg[1:] != sg[:-1]])
         out[sg[starts]] += np.add.reduceat(products, starts, axis=0).reshape(-1, a, c)
     return out
+
+
+def _blocks_of_normal(Jc: np.ndarray, structure: Structure, ix: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """U (B, nb, nb), V (G, ks, ks), W (P, nb, ks) of JᵀJ from the compressed Jacobian, in NumPy:
+    when the structure is padded (every pair's rows gathered, few rows each) by one batched
+    product per pair, else by segment sums."""
+    nb, B, G = structure.nb, structure.n_blocks, structure.n_groups
+    P = len(ix["pair_block"])
+    if ix["padded"]:
+        Jp = np.concatenate([Jc, np.zeros((1, Jc.shape[1]))])[ix["pair_rows"]]  # (P, L, c)
+        A = np.matmul(Jp.transpose(0, 2, 1), Jp)
+        U = _segment_sum(np, A[:, :nb, :nb], ix["pair_block"], B)
+        V = _segment_sum(np, A[:, nb:, nb:], ix["pair_group"], G)
+        return U, V, A[:, :nb, nb:].copy()
+    Jb, Js = Jc[:, :nb], Jc[:, nb:]
+    U = _segment_products(Jb, Jb, structure.row_block, B)
+    V = _segment_products(Js, Js, structure.row_group, G)
+    W = _segment_products(Jb, Js, ix["row_pair"], P)
+    return U, V, W
 
 
 def analyze_structured(
@@ -725,13 +757,9 @@ def analyze_structured(
     (built with each block's pseudo-inverse).  ``chi2_scale`` multiplies the covariance.
     """
     _, Jc = compressed_jacobian(fun, x, structure, args, local)
-    nb, B, G, ks = structure.nb, structure.n_blocks, structure.n_groups, structure.ks
+    nb, G, ks = structure.nb, structure.n_groups, structure.ks
     ix = structure.arrays()
-    P = len(ix["pair_block"])
-    Jb, Js = Jc[:, :nb], Jc[:, nb:]
-    U = _segment_products(Jb, Jb, structure.row_block, B)
-    V = _segment_products(Js, Js, structure.row_group, G)
-    W = _segment_products(Jb, Js, ix["row_pair"], P)
+    U, V, W = _blocks_of_normal(Jc, structure, ix)
     names = list(structure.names) if structure.names is not None else [f"x[{j}]" for j in range(structure.n)]
     unobservable: list[dict[str, Any]] = []
     U_pinv, ranks, nulls = _pinv_sym_stack(U, rtol)
@@ -740,8 +768,8 @@ def analyze_structured(
         for k in range(null.shape[1]):
             combo = {names[structure.blocks[b, i]]: float(null[i, k]) for i in range(nb) if abs(null[i, k]) > 1e-6}
             unobservable.append({"where": f"block {b}", "combination": combo})
-    arrays = _Arrays(*(jnp.asarray(ix[k]) for k in _Arrays._fields))
-    S = np.asarray(_reduced(jnp.asarray(U_pinv), jnp.asarray(V), jnp.asarray(W), arrays, G))
+    arrays = _Arrays(*(np.asarray(ix[k]) for k in _Arrays._fields))
+    S = _reduced(U_pinv, V, W, arrays, G, xp=np)
     S = 0.5 * (S + S.T)
     S_inv, rk_s, null_s = _pinv_sym(S, rtol)
     rank += rk_s
