@@ -13,6 +13,7 @@ import argparse
 import json
 import math
 import os
+import signal
 import sys
 import textwrap
 import threading
@@ -32,7 +33,7 @@ import numpy as np  # noqa: E402
 
 from mbcal import __version__  # noqa: E402
 from mbcal.errors import MbcalError  # noqa: E402
-from mbcal.outputs import atomic_write, check_output  # noqa: E402
+from mbcal.outputs import INTERRUPTED, atomic_write, check_output  # noqa: E402
 from mbcal.units import UNITS  # noqa: E402
 
 __all__ = ["main", "build_parser"]
@@ -1218,8 +1219,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return EXIT_BAD_INPUT
+    restore = _watch_interrupts()
     try:
-        return int(args.func(args))
+        code = int(args.func(args))
+        if INTERRUPTED.is_set():  # a Ctrl-C that Python swallowed (in a finalizer): still interrupted
+            raise KeyboardInterrupt
+        return code
     except MbcalError as err:
         _stop_progress()
         print(err.render(), file=sys.stderr)
@@ -1233,6 +1238,30 @@ def main(argv: Sequence[str] | None = None) -> int:
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return EXIT_OK
+    finally:
+        restore()
+
+
+def _watch_interrupts() -> Callable[[], None]:
+    """Record Ctrl-C in :data:`mbcal.outputs.INTERRUPTED` as well as raising KeyboardInterrupt:
+    Python only prints an interrupt that lands in a finalizer (JAX frees arrays and programs in
+    them) and goes on, and the command then finished and exited 0.  Only where Ctrl-C has
+    Python's default handler, in the main thread; returns the function that puts it back."""
+    INTERRUPTED.clear()
+    if threading.current_thread() is not threading.main_thread():
+        return lambda: None
+    if signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        return lambda: None
+
+    def interrupted(signum, frame):
+        INTERRUPTED.set()
+        raise KeyboardInterrupt
+
+    def restore() -> None:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+    signal.signal(signal.SIGINT, interrupted)
+    return restore
 
 
 def _stop_progress() -> None:

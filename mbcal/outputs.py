@@ -15,6 +15,7 @@ import contextlib
 import os
 import stat
 import tempfile
+import threading
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
@@ -75,6 +76,18 @@ def check_output(
     return out
 
 
+INTERRUPTED = threading.Event()
+"""Set by the command line's Ctrl-C handler (:func:`mbcal.cli.main`).  Python only prints an
+interrupt that lands in a finalizer or a callback and goes on; the flag still stops every later
+write (:func:`check_interrupted`), so an interrupted command never leaves an output behind."""
+
+
+def check_interrupted() -> None:
+    """Raise ``KeyboardInterrupt`` when the command line was interrupted (see :data:`INTERRUPTED`)."""
+    if INTERRUPTED.is_set():
+        raise KeyboardInterrupt
+
+
 @contextlib.contextmanager
 def atomic_writer(path: str | os.PathLike[str], mode: str = "wb") -> Iterator:
     """Open a temporary file that replaces ``path`` only when the block finishes without error.
@@ -91,6 +104,7 @@ def atomic_writer(path: str | os.PathLike[str], mode: str = "wb") -> Iterator:
             handle.flush()
             os.fsync(handle.fileno())
         os.chmod(tmp, _mode_for(target))
+        check_interrupted()  # an interrupt Python swallowed still stops the write
         os.replace(tmp, target)
     except BaseException:
         with contextlib.suppress(OSError):

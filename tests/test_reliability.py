@@ -8,6 +8,7 @@ import os
 import signal
 import subprocess
 import sys
+import textwrap
 import time
 import tracemalloc
 
@@ -301,3 +302,37 @@ def test_no_code_runs_from_model_or_measurement_text(tmp_path):
     source = source.replace("allow_pickle=False", "")
     for forbidden in ("eval(", "exec(", "pickle", "marshal", "yaml.load", "allow_pickle=True"):
         assert forbidden not in source, forbidden
+
+
+def test_a_ctrl_c_that_python_swallows_in_a_finalizer_still_interrupts(tmp_path):
+    # Python only prints a KeyboardInterrupt raised inside a finalizer and goes on (JAX frees
+    # arrays and programs in them): the command must still end as interrupted, writing nothing.
+    script = tmp_path / "run.py"
+    out = tmp_path / "out.txt"
+    script.write_text(
+        textwrap.dedent(
+            f"""
+            import gc, os, signal, sys, weakref
+            from mbcal import cli
+            from mbcal.outputs import atomic_write
+
+            class Held:
+                pass
+
+            def command(args):
+                held = Held()
+                weakref.finalize(held, lambda: os.kill(os.getpid(), signal.SIGINT) or [0] * 100000)
+                del held
+                gc.collect()
+                atomic_write({str(out)!r}, "should not be written")
+                return 0
+
+            cli.cmd_check = command
+            sys.exit(cli.main(["check", {str(MODELS / "lever.mdl")!r}]))
+            """
+        )
+    )
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 130, done.stderr
+    assert "interrupted" in done.stderr
+    assert not out.exists() and not list(tmp_path.glob("*.part"))
