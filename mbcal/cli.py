@@ -1257,10 +1257,18 @@ def _watch_interrupts() -> Callable[[], None]:
         INTERRUPTED.set()
         raise KeyboardInterrupt
 
+    previous_hook = sys.unraisablehook
+
+    def quiet(unraisable) -> None:  # the swallowed interrupt is recorded: no traceback for it
+        if not (INTERRUPTED.is_set() and isinstance(unraisable.exc_value, KeyboardInterrupt)):
+            previous_hook(unraisable)
+
     def restore() -> None:
         signal.signal(signal.SIGINT, signal.default_int_handler)
+        sys.unraisablehook = previous_hook
 
     signal.signal(signal.SIGINT, interrupted)
+    sys.unraisablehook = quiet
     return restore
 
 
