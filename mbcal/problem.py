@@ -14,6 +14,7 @@ lock; after each step the angles are read back from the rotation.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -84,59 +85,52 @@ class Problem:
         self.model = model
         self.measurements = measurements
         self._fingerprint: str | None = None
+        columns = measurements.columns()  # the set as arrays, built once per set (issue 15)
+        self._columns = columns
         self.params = ParameterSet(
             model,
             list(estimate),
             known={**measurements.known, **(known or {})},
-            configurations=measurements.config_names,
+            configurations=columns.config_names,
             per_configuration=measurements.configurations,
         )
-        config_index = {c: i for i, c in enumerate(self.params.configurations)}
-        by_kind: dict[str, list[int]] = {}
-        for i, m in enumerate(measurements.measurements):
-            by_kind.setdefault(m.kind, []).append(i)
         groups: list[Group] = []
         start = 0
-        for kind, members in by_kind.items():
+        for kind, col in columns.kinds.items():
             mm = get_model(kind)
-            ms = [measurements.measurements[i] for i in members]
             refs = {}
             for role in mm.roles:
                 table = "frame" if role.lookup == "object" else role.lookup
-                names = [m.refs[role.name] for m in ms]
+                distinct, code = col.refs[role.name]
                 # each distinct name looked up once (thousands of measurements name a few dozen things)
                 if table == "frame":
-                    index = {name: model.frame_index(name) for name in set(names)}
+                    index = [model.frame_index(name) for name in distinct]
                 else:
-                    index = {name: model._lookup(table, name) for name in set(names)}
-                refs[role.name] = np.array([index[name] for name in names], dtype=np.int64)
-            data = np.array([[m.data[k] for k in mm.data] for m in ms], dtype=float).reshape(len(ms), len(mm.data))
-            batch = Batch(np.array([config_index[m.config] for m in ms], dtype=np.int64), refs, data)
-            covs = np.stack([m.cov for m in ms])
+                    index = [model._lookup(table, name) for name in distinct]
+                refs[role.name] = np.asarray(index, dtype=np.int64)[code]
+            batch = Batch(col.config, refs, col.data)
+            covs = col.cov
             diagonal = bool(np.all(covs == np.einsum("nii->ni", covs)[:, :, None] * np.eye(mm.size)))
             if diagonal:
                 whiten = 1.0 / np.sqrt(np.einsum("nii->ni", covs))
             else:
                 whiten = np.linalg.inv(np.linalg.cholesky(covs))
-            groups.append(Group(mm, batch, np.asarray(members), start, whiten, diagonal))
-            start += len(members) * mm.size
+            groups.append(Group(mm, batch, col.members, start, whiten, diagonal))
+            start += len(col.members) * mm.size
         self.groups: tuple[Group, ...] = tuple(groups)
         needs = Needs()
         for g in self.groups:
             needs = needs.union(g.model.needs(model, g.batch))
         self.needs = needs  # what the measurements read: the modeler skips the rest
         self.size = start  # rows of h
-        # Which measurement and which value each row of h belongs to, and the reverse: the rows
-        # of h (and of the residual and Jacobian) of each measurement, in the set's order.
+        # Which measurement and which value each row of h belongs to (the reverse,
+        # measurement_rows, is built when first asked for).
         self.row_measurement = np.zeros(self.size, dtype=np.int64)
         self.row_component = np.zeros(self.size, dtype=np.int64)
-        self.measurement_rows: list[slice] = [slice(0, 0)] * len(measurements.measurements)
         for g in self.groups:
             s = g.model.size
             self.row_measurement[g.start : g.start + g.rows] = np.repeat(g.members, s)
             self.row_component[g.start : g.start + g.rows] = np.tile(np.arange(s), len(g.members))
-            for k, i in enumerate(g.members):
-                self.measurement_rows[int(i)] = slice(g.start + k * s, g.start + (k + 1) * s)
         sigma = self.params.prior_sigma
         self.prior_index = np.nonzero(np.isfinite(sigma))[0] if priors else np.zeros(0, dtype=np.int64)
         self.prior_sigma = sigma[self.prior_index]
@@ -186,13 +180,22 @@ class Problem:
 
     # ---- values ---------------------------------------------------------------------------------
 
+    @functools.cached_property
+    def measurement_rows(self) -> list[slice]:
+        """The rows of h (and of the residual and Jacobian) of each measurement, in the set's order."""
+        rows: list[slice] = [slice(0, 0)] * len(self.measurements.measurements)
+        for g in self.groups:
+            s = g.model.size
+            for k, i in enumerate(g.members.tolist()):
+                rows[i] = slice(g.start + k * s, g.start + (k + 1) * s)
+        return rows
+
     @property
     def y(self) -> np.ndarray:
         """The measured values stacked like h (NaN where a plan has none)."""
         y = np.full(self.size, np.nan)
-        for m, rows in zip(self.measurements.measurements, self.measurement_rows):
-            if m.value is not None:
-                y[rows] = m.value
+        for g, col in zip(self.groups, self._columns.kinds.values()):
+            y[g.start : g.start + g.rows] = col.values.ravel()
         return y
 
     @property

@@ -65,9 +65,14 @@ def _frame_poses(scenes: Scene, batch: Batch, role: str) -> Array:
     return poses[batch.config, index]
 
 
+def _distinct(index: np.ndarray) -> list[int]:
+    """The distinct entries of an index array, as Python ints (thousands of rows, a few values)."""
+    return np.unique(index).tolist()
+
+
 def _point_needs(batch: Batch, roles: tuple[str, ...], frames: tuple[str, ...] = ()) -> Needs:
-    points = frozenset(int(i) for r in roles for i in batch.refs[r])
-    framed = frozenset(int(i) for r in frames for i in batch.refs[r] if i >= 0)
+    points = frozenset(i for r in roles for i in _distinct(batch.refs[r]))
+    framed = frozenset(i for r in frames for i in _distinct(batch.refs[r]) if i >= 0)
     return Needs(frames=framed, points=points)
 
 
@@ -198,8 +203,8 @@ class ImagePoint(MeasurementModel):
 
     def needs(self, model, batch: Batch) -> Needs:
         return Needs(
-            points=frozenset(int(i) for i in batch.refs["point"]),
-            cameras=frozenset(int(i) for i in batch.refs["camera"]),
+            points=frozenset(_distinct(batch.refs["point"])),
+            cameras=frozenset(_distinct(batch.refs["camera"])),
         )
 
     def visible(self, scenes: Scene, batch: Batch) -> Array:
@@ -292,7 +297,7 @@ class Range(MeasurementModel):
     description = "distance along ray number 'ray' of a range sensor to the first surface it hits"
 
     def needs(self, model, batch: Batch) -> Needs:
-        frames = frozenset(model.ranges[int(s)].frame for s in batch.refs["sensor"])
+        frames = frozenset(model.ranges[s].frame for s in _distinct(batch.refs["sensor"]))
         return Needs(frames=frames, shapes=None)
 
     def check(self, model, refs, data):
@@ -368,7 +373,7 @@ class PointToSurface(MeasurementModel):
         shapes = frozenset(
             i for obj in set(batch.refs["object"].tolist()) for i in model.shapes_of(model.frames[obj].name)
         )
-        frames = frozenset(int(i) for i in batch.refs["frame"] if i >= 0)
+        frames = frozenset(i for i in _distinct(batch.refs["frame"]) if i >= 0)
         return Needs(frames=frames, shapes=shapes)
 
     def check(self, model, refs, data):

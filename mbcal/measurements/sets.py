@@ -23,6 +23,8 @@ from mbcal.measurements.registry import registry
 from mbcal.units import UNITS
 
 __all__ = [
+    "Columns",
+    "KindColumns",
     "Measurement",
     "MeasurementSet",
     "SetBuilder",
@@ -87,6 +89,90 @@ class Measurement:
         return np.sqrt(np.diag(self.cov))
 
 
+@dataclass(frozen=True)
+class KindColumns:
+    """The measurements of one kind in a set, as arrays (see :meth:`MeasurementSet.columns`).
+
+    Attributes
+    ----------
+    kind : str
+    members : (k,) int
+        Their positions in the set, in order.
+    config : (k,) int
+        Index into :attr:`Columns.config_names`.
+    refs : dict
+        Role → (distinct names in order of first appearance, (k,) index into them).
+    values : (k, size) float
+        Measured values (NaN in the rows of measurements without one).
+    has_value : (k,) bool
+    cov : (k, size, size) float
+    data : (k, d) float
+        The model's extra inputs (``MeasurementModel.data``), in its order.
+    """
+
+    kind: str
+    members: np.ndarray
+    config: np.ndarray
+    refs: dict[str, tuple[list[str], np.ndarray]]
+    values: np.ndarray
+    has_value: np.ndarray
+    cov: np.ndarray
+    data: np.ndarray
+
+    def names(self, role: str) -> list[str]:
+        """The referenced name of every measurement in ``role``."""
+        distinct, code = self.refs[role]
+        return [distinct[i] for i in code]
+
+
+@dataclass(frozen=True)
+class Columns:
+    """A measurement set as arrays: its configurations and one :class:`KindColumns` per kind
+    (in order of first appearance)."""
+
+    config_names: list[str]
+    kinds: dict[str, KindColumns]
+
+
+def _build_columns(ms: Sequence[Measurement], config_names: list[str]) -> Columns:
+    config_index = {c: i for i, c in enumerate(config_names)}
+    by_kind: dict[str, list[int]] = {}
+    for i, m in enumerate(ms):
+        by_kind.setdefault(m.kind, []).append(i)
+    models = registry()
+    kinds = {}
+    for kind, positions in by_kind.items():
+        group = [ms[i] for i in positions]
+        first = group[0]
+        size = first.cov.shape[0]
+        mm = models.get(kind)  # an unknown kind is reported by whoever needs its model
+        refs = {}
+        for role in [r.name for r in mm.roles] if mm is not None else list(first.refs):
+            names = [m.refs[role] for m in group]
+            distinct = list(dict.fromkeys(names))
+            code = {n: i for i, n in enumerate(distinct)}
+            refs[role] = (distinct, np.array([code[n] for n in names], dtype=np.int64))
+        has_value = np.array([m.value is not None for m in group], dtype=bool)
+        values = np.full((len(group), size), np.nan)
+        if has_value.all():
+            values[:] = [m.value for m in group]
+        elif has_value.any():
+            values[has_value] = [m.value for m in group if m.value is not None]
+        data_names = list(mm.data) if mm is not None else sorted(first.data)
+        data = np.array([[m.data[k] for k in data_names] for m in group], dtype=float) if data_names else None
+        kinds[kind] = KindColumns(
+            kind,
+            np.asarray(positions, dtype=np.int64),
+            np.array([config_index[m.config] for m in group], dtype=np.int64),
+            refs,
+            values,
+            has_value,
+            np.stack([m.cov for m in group]),
+            data if data is not None else np.zeros((len(group), 0)),
+        )
+    return Columns(config_names, kinds)
+
+
 @dataclass
 class MeasurementSet:
     """Measurements, known parameter values and configurations read from files.
@@ -107,6 +193,25 @@ class MeasurementSet:
     configurations: dict[str, dict[str, float]] = field(default_factory=dict)
     path: str | None = None
     images: dict[str, str] = field(default_factory=dict)  # configuration → image file it was measured in
+    _columns: tuple[Any, ...] | None = field(default=None, init=False, repr=False, compare=False)
+
+    def columns(self) -> Columns:
+        """The set as arrays, one :class:`KindColumns` per kind (issue 15: a problem, Zhang's start
+        and the reports read these instead of walking thousands of objects).
+
+        Built on first use and kept while the set holds the same measurement objects with the
+        same configurations (appending, removing or replacing a measurement rebuilds it).
+        Measurements are values: change one by replacing it (``dataclasses.replace``), not by
+        writing into its arrays.
+        """
+        ms = self.measurements
+        key = (tuple(map(id, ms)), tuple(self.configurations))
+        cached = self._columns
+        if cached is not None and cached[0] == key:
+            return cached[2]
+        columns = _build_columns(ms, self.config_names)
+        self._columns = (key, tuple(ms), columns)  # the objects kept alive: their ids stay theirs
+        return columns
 
     def __len__(self) -> int:
         return len(self.measurements)

@@ -241,36 +241,28 @@ class _PlanarPoints:
     in order of first appearance."""
 
     def __init__(self, model: Model, data: MeasurementSet, X0: np.ndarray):
-        planar: dict[str, tuple[int, np.ndarray] | None] = {}
-        camera_of: dict[str, int] = {}
-        config_of: dict[str, int] = {}
-        keys: list[tuple[int, int, int]] = []
-        xy: list[np.ndarray] = []
-        uv: list[Any] = []
-        for m in data:
-            if m.kind != "image_point" or m.value is None:
-                continue
-            name = m.refs["point"]
-            if name not in planar:
+        columns = data.columns()  # arrays, not a walk over thousands of measurements (issue 15)
+        self.configs = columns.config_names
+        col = columns.kinds.get("image_point")
+        if col is None:
+            key, self.xy, self.uv = np.zeros((0, 3), dtype=np.int64), np.zeros((0, 2)), np.zeros((0, 2))
+        else:
+            # each distinct point once: its target frame and its xy on the target's z = 0 plane
+            point_names, point_code = col.refs["point"]
+            frame = np.full(len(point_names), -1, dtype=np.int64)
+            plane_xy = np.zeros((len(point_names), 2))
+            for j, name in enumerate(point_names):
                 p = model.points[model.point_index(name)]
-                planar[name] = None
                 if p.frame >= 0:
                     local = np.asarray(ir.evaluate(p.position, X0, {}, np), dtype=float)
-                    if abs(local[2]) <= 1e-9:  # on a planar target's z = 0 plane
-                        planar[name] = (p.frame, local[:2])
-            entry = planar[name]
-            if entry is None:
-                continue
-            cam = m.refs["camera"]
-            if cam not in camera_of:
-                camera_of[cam] = model.camera_index(cam)
-            keys.append((camera_of[cam], config_of.setdefault(m.config, len(config_of)), entry[0]))
-            xy.append(entry[1])
-            uv.append(m.value)
-        self.configs = list(config_of)
-        key = np.asarray(keys, dtype=np.int64).reshape(-1, 3)
-        self.xy = np.asarray(xy, dtype=float).reshape(-1, 2)
-        self.uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+                    if abs(local[2]) <= 1e-9:
+                        frame[j], plane_xy[j] = p.frame, local[:2]
+            camera_names, camera_code = col.refs["camera"]
+            camera = np.array([model.camera_index(c) for c in camera_names], dtype=np.int64)[camera_code]
+            use = np.nonzero(col.has_value & (frame[point_code] >= 0))[0]
+            key = np.stack([camera[use], col.config[use], frame[point_code[use]]], axis=1)
+            self.xy = plane_xy[point_code[use]]
+            self.uv = col.values[use]
         unique, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
         order = np.argsort(first, kind="stable")  # groups in order of first appearance
         rank = np.empty(len(order), dtype=np.int64)
