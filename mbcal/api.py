@@ -170,16 +170,24 @@ def _units(problem: Problem) -> dict[str, str]:
 
 
 def _residual_rows(problem: Problem, x: np.ndarray, residual: np.ndarray) -> list[ResidualRow]:
-    """Each measurement at x; ``residual`` is the whitened residual at x (measurements, then priors)."""
+    """Each measurement at x; ``residual`` is the whitened residual at x (measurements, then priors).
+
+    Per kind as arrays (issue 16): each row's measured and predicted values are rows of one
+    private copy per kind, its normalised residual one reduction per kind."""
     h = problem.predict(x)
     y = problem.y
     r = residual[: problem.size]
-    return [
-        ResidualRow(
-            m.id, m.kind, m.config, dict(m.refs), y[rows].copy(), h[rows].copy(), float(np.sqrt(np.sum(r[rows] ** 2)))
-        )
-        for m, rows in zip(problem.measurements.measurements, problem.measurement_rows)
-    ]
+    ms = problem.measurements.measurements
+    out: list[Any] = [None] * len(ms)
+    for g in problem.groups:
+        s = g.model.size
+        part = slice(g.start, g.start + g.rows)
+        Y, H = y[part].reshape(-1, s).copy(), h[part].reshape(-1, s).copy()
+        norm = np.sqrt(np.sum(r[part].reshape(-1, s) ** 2, axis=1)).tolist()
+        for k, i in enumerate(g.members.tolist()):
+            m = ms[i]
+            out[i] = ResidualRow(m.id, m.kind, m.config, dict(m.refs), Y[k], H[k], norm[k])
+    return out
 
 
 def _rms(problem: Problem, rows: list[ResidualRow]) -> dict[str, float]:
@@ -188,8 +196,10 @@ def _rms(problem: Problem, rows: list[ResidualRow]) -> dict[str, float]:
     Image points follow OpenCV: √(Σ‖e‖² / number of points), e the 2-D pixel error.
     """
     out: dict[str, float] = {}
-    for kind in dict.fromkeys(r.kind for r in rows):
-        e = np.array([r.residual for r in rows if r.kind == kind])
+    for g in problem.groups:
+        kind = g.model.kind
+        members = [rows[i] for i in g.members.tolist()]
+        e = np.array([row.measured for row in members]) - np.array([row.predicted for row in members])
         if kind == "image_point":
             out[kind] = float(np.sqrt(np.mean(np.sum(e**2, axis=1))))
         else:
@@ -211,33 +221,43 @@ def _point_uncertainties(
 ) -> list[PointUncertainty]:
     model = problem.model
     configs = problem.params.configurations
-    wanted: dict[tuple[str, str], str | None] = {}
-    if points is None:
-        for m in problem.measurements:
-            if "point" in m.refs:
-                wanted.setdefault((m.refs["point"], m.config), m.refs.get("camera"))
+    C = len(configs)
+    if points is None:  # every (point, configuration) measured, in the set's order; the first one's camera
+        found = []
+        for g, col in zip(problem.groups, problem._columns.kinds.values()):
+            if "point" in col.refs:
+                cam = g.batch.refs["camera"] if "camera" in g.batch.refs else np.full(len(g.members), -1)
+                found.append((g.members, g.batch.refs["point"], g.batch.config, cam))
+        if not found:
+            return []
+        order, idx, cfg_idx, cam_idx = (np.concatenate(parts) for parts in zip(*found))
+        key = idx * C + cfg_idx
+        _, first = np.unique(key, return_index=True)
+        first = first[np.argsort(order[first], kind="stable")]  # first appearance in the set
+        idx, cfg_idx, cam_idx = idx[first], cfg_idx[first], cam_idx[first]
     else:
-        for p in points:
-            full = model.resolve("point", p)
-            for cfg in configs:
-                wanted.setdefault((full, cfg), None)
-    if not wanted:
-        return []
+        full = dict.fromkeys(model.resolve("point", p) for p in points)
+        idx = np.repeat(np.array([model.point_index(p) for p in full], dtype=np.int64), C)
+        cfg_idx = np.tile(np.arange(C), len(idx) // C)
+        cam_idx = np.full(len(idx), -1)
+        if not len(idx):
+            return []
     if camera is not None:
-        camera = model.resolve("camera", camera)
-    idx = np.array([model.point_index(p) for p, _ in wanted], dtype=np.int64)
-    position_of = {c: i for i, c in enumerate(configs)}
-    cfg_idx = np.array([position_of[c] for _, c in wanted], dtype=np.int64)
+        cam_idx = np.full(len(idx), model.camera_index(model.resolve("camera", camera)))
+    elif model.cameras:
+        cam_idx = np.where(cam_idx < 0, 0, cam_idx)  # no camera named: the model's first one
     origins = problem.frame_origins(x)
-    items: list[tuple[str, str, str | None]] = []
-    eyes: list[np.ndarray | None] = []
-    for (name, cfg), cam in wanted.items():
-        cam = camera or cam or (model.cameras[0].name if model.cameras else None)
-        eye = None
-        if cam is not None:
-            eye = origins[position_of[cfg], model.cameras[model.camera_index(cam)].frame]
-        items.append((name, cfg, cam))
-        eyes.append(eye)
+    eyes = np.full((len(idx), 3), np.nan)  # NaN: no line of sight (a model without cameras)
+    seen = cam_idx >= 0
+    if seen.any():
+        frame_of = np.array([c.frame for c in model.cameras], dtype=np.int64)
+        eyes[seen] = origins[cfg_idx[seen], frame_of[cam_idx[seen]]]
+    point_names = [p.name for p in model.points]
+    camera_names = [c.name for c in model.cameras]
+    items = [
+        (point_names[i], configs[c], camera_names[k] if k >= 0 else None)
+        for i, c, k in zip(idx.tolist(), cfg_idx.tolist(), cam_idx.tolist())
+    ]
     if isinstance(covariance, BlockCovariance):  # a structured problem's: each point from its block (issue 15)
         return covariance.point_uncertainties(problem, x, cfg_idx, idx, items, eyes)
     P, J = problem.point_jacobian(x, cfg_idx, idx)  # (k, 3), (k, 3, n)

@@ -497,7 +497,8 @@ def cmd_calibrate_camera(args: argparse.Namespace) -> int:
     data = merge_measurements([read_measurements(path, model) for path in args.measurements])
     progress = Progress(not args.quiet)
     progress.step("initialising (Zhang's method) and refining")
-    check_size(args.restarts)
+    if args.restarts is not None:
+        check_size(args.restarts)
     cc = calibrate_cameras(
         model,
         data,
@@ -897,7 +898,14 @@ def _register_commands(sub) -> None:
         metavar="NAME|GLOB",
         help="unknowns (default: parameters with a search range and per-configuration ones not given)",
     )
-    p.add_argument("--restarts", type=int, default=4, metavar="N", help="starts: Zhang's solution and N-1 random ones")
+    p.add_argument(
+        "--restarts",
+        type=int,
+        default=None,
+        metavar="N",
+        help="starts: Zhang's solution and N-1 random ones (default: Zhang's alone, and 4 when that fit does not "
+        "converge or is not consistent with the stated sigma)",
+    )
     p.add_argument("--seed", type=int, default=0, metavar="S")
     p.add_argument("--no-init", action="store_true", help="start from the model's nominal values, not Zhang's method")
     _structure_option(p)

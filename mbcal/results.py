@@ -76,6 +76,8 @@ class RunInfo:
     """Whether the covariance was scaled by the reduced χ²."""
     not_visible: tuple[str, ...] = ()
     """Ids of the measurements that cannot be made at the solution."""
+    note: str = ""
+    """How the number of restarts was chosen, when a workflow chose it (``calibrate_cameras``)."""
 
     def as_dict(self) -> dict[str, Any]:
         """The fields as a dict (``not_visible`` as a list): the ``info`` of mbcal 0.1."""
@@ -345,6 +347,7 @@ def result_json(r: CalibrationResult) -> dict[str, Any]:
             "converged": int(np.sum(solver.converged)),
             "best": int(solver.best),
             "seed": r.run.seed,
+            "chosen": r.run.note,
             "runs": [
                 {
                     "index": i,
@@ -516,6 +519,8 @@ def result_text(r: CalibrationResult, *, max_residuals: int = 15) -> str:
         f"restarts: {len(solver.cost)} ({summary}); best #{solver.best}; {same} reached the best S; "
         f"solved in {r.elapsed:.2f} s"
     )
+    if r.run.note:
+        out.append(f"restarts chosen: {r.run.note}")
     return "\n".join(out)
 
 

@@ -294,3 +294,38 @@ def test_models_from_text_with_the_same_structure_do_not_share_a_compiled_progra
 
     assert problem("0.5 m").fingerprint() != problem("0.7 m").fingerprint()
     assert problem("0.5 m").fingerprint() == problem("0.5 m").fingerprint()
+
+
+def test_point_uncertainties_group_equal_jacobian_patterns_exactly():
+    """observability._equal_rows groups equal boolean rows (what np.unique(axis=0) does, faster),
+    and a (k, 3) eye array with NaN rows gives what the list of eyes with None gives."""
+    from mbcal.observability import _equal_rows, point_uncertainties
+
+    rng = np.random.default_rng(3)
+    for n in (1, 7, 64, 65, 130):
+        rows = rng.random((200, n)) < 0.5
+        rows[50:80] = rows[0]  # some repeated patterns
+        order, starts = _equal_rows(rows)
+        assert sorted(order.tolist()) == list(range(200))
+        groups = np.split(order, starts[1:])
+        assert len(groups) == len(np.unique(rows, axis=0))
+        for g in groups:
+            assert (rows[g] == rows[g[0]]).all()
+        firsts = [rows[g[0]].tobytes() for g in groups]
+        assert len(set(firsts)) == len(firsts)  # different groups, different rows
+
+    k, n = 6, 5
+    P = rng.normal(size=(k, 3))
+    J = rng.normal(size=(k, 3, n)) * (rng.random((k, 1, n)) < 0.7)
+    A = rng.normal(size=(n, n))
+    cov = A @ A.T
+    eyes_list = [None if i % 3 == 0 else rng.normal(size=3) for i in range(k)]
+    eyes_array = np.array([np.full(3, np.nan) if e is None else e for e in eyes_list])
+    items = [(f"p{i}", "c", None) for i in range(k)]
+    a = point_uncertainties(items, P, J, cov, eyes_list)
+    b = point_uncertainties(items, P, J, cov, eyes_array)
+    for u, v in zip(a, b):
+        np.testing.assert_allclose(u.covariance, J[int(u.point[1:])] @ cov @ J[int(u.point[1:])].T, rtol=1e-12)
+        np.testing.assert_array_equal(u.covariance, v.covariance)
+        assert (np.isnan(u.parallel) and np.isnan(v.parallel)) or u.parallel == v.parallel
+        assert u.perpendicular == v.perpendicular

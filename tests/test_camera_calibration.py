@@ -278,3 +278,32 @@ def test_detect_without_opencv_says_how_to_install_it(tmp_path):
     )
     assert result.returncode == 2
     assert "needs OpenCV" in result.stderr and "pip install 'mbcal[vision]'" in result.stderr
+
+
+@pytest.mark.slow
+def test_auto_restarts_add_random_starts_only_when_zhangs_start_gives_a_doubtful_fit():
+    """calibrate_cameras(restarts=None): Zhang's start alone when its fit converges and is
+    consistent with σ; 4 starts (Zhang's first) when not; an explicit number is obeyed."""
+    from mbcal.workflows.cameras import AUTO_RESTARTS, simulate_views
+
+    model = mbcal.load_model(MODELS / "camera_calibration.mdl")
+    truth = {"cam.fx": 810.0, "cam.fy": 805.0, "cam.cx": 322.0, "cam.cy": 238.0, "cam.k1": -0.2, "cam.k2": 0.05}
+    data, _ = simulate_views(model, 6, truth, seed=4, sigma=0.3)
+    cc = calibrate_cameras(model, data)
+    assert len(cc.result.solver.cost) == 1 and cc.result.verdict.consistent
+    assert cc.result.run.note.startswith("auto: Zhang's start alone")
+    assert "restarts chosen: auto" in cc.result.summary()
+    assert cc.result.to_json()["restarts"]["chosen"] == cc.result.run.note
+
+    # ten times the stated noise: inconsistent with σ, so random starts join Zhang's
+    rng = np.random.default_rng(1)
+    noisy = data.with_values([m.value + rng.normal(0.0, 3.0, 2) for m in data])
+    doubtful = calibrate_cameras(model, noisy)
+    assert len(doubtful.result.solver.cost) == AUTO_RESTARTS and not doubtful.result.verdict.consistent
+    assert f"auto: {AUTO_RESTARTS} starts" in doubtful.result.run.note
+    alone = calibrate_cameras(model, noisy, restarts=1)
+    np.testing.assert_allclose(doubtful.result.solver.x0[0], alone.result.solver.x0[0])  # Zhang's start first
+    assert doubtful.result.cost <= alone.result.cost * (1 + 1e-9)
+
+    explicit = calibrate_cameras(model, data, restarts=2)
+    assert len(explicit.result.solver.cost) == 2 and explicit.result.run.note == ""

@@ -271,3 +271,37 @@ def test_csv_files_are_read_line_by_line_whatever_their_line_ends(room, tmp_path
     with pytest.raises(MeasurementFileError, match=r"latin1.csv is not UTF-8 text \(line 4, byte 40\)") as info:
         read_measurements(tmp_path / "latin1.csv", room)
     assert info.value.span.line == 4
+
+
+def test_a_sets_columns_follow_its_measurements_and_give_the_problems_values(tmp_path, room):
+    """MeasurementSet.columns(): the set as arrays per kind, cached while the set holds the same
+    measurement objects, rebuilt when one is added or replaced; Problem.y reads it."""
+    from dataclasses import replace
+
+    from mbcal.problem import Problem
+
+    plan = read_measurements(MEASUREMENTS / "room_plan.csv", room)
+    rng = np.random.default_rng(0)
+    data = plan.with_values([rng.normal(300.0, 50.0, 2) for _ in plan])
+    columns = data.columns()
+    assert data.columns() is columns  # kept
+    col = columns.kinds["image_point"]
+    assert list(col.members) == list(range(len(data)))
+    assert col.names("camera") == [m.refs["camera"] for m in data]
+    assert col.names("point") == [m.refs["point"] for m in data]
+    assert [columns.config_names[c] for c in col.config] == [m.config for m in data]
+    np.testing.assert_array_equal(col.values, np.stack([m.value for m in data]))
+    np.testing.assert_array_equal(col.cov, np.stack([m.cov for m in data]))
+    problem = Problem(room, data, ["room.x", "room.y"])
+    np.testing.assert_array_equal(problem.y, np.concatenate([m.value for m in data]))
+    for m, rows in zip(data, problem.measurement_rows):
+        np.testing.assert_array_equal(problem.y[rows], m.value)
+
+    # replaced in place (same length): rebuilt, and the new value is read
+    data.measurements[3] = replace(data.measurements[3], value=np.array([1.0, 2.0]))
+    assert data.columns() is not columns
+    np.testing.assert_array_equal(data.columns().kinds["image_point"].values[3], [1.0, 2.0])
+    # a plan row without a value: NaN in its row, has_value False
+    data.measurements.append(plan.measurements[0])
+    col = data.columns().kinds["image_point"]
+    assert len(col.members) == len(plan) + 1 and not col.has_value[-1] and np.isnan(col.values[-1]).all()

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -36,7 +36,7 @@ from mbcal.geometry.transforms import rpy_from_matrix
 from mbcal.language import ir
 from mbcal.language.model import Model
 from mbcal.measurements.sets import MeasurementSet, measurements_from_records
-from mbcal.modeling import modeler, parameter_vector
+from mbcal.modeling import Needs, modeler, parameter_vector
 from mbcal.params import ParameterSet
 from mbcal.render.views import Layer, draw_overlay, load_image, save_png
 from mbcal.text import fmt, table
@@ -59,6 +59,7 @@ __all__ = [
 ]
 
 INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "skew")
+AUTO_RESTARTS = 4  # starts of calibrate_cameras(restarts=None) when Zhang's start alone is not enough
 DISTORTION_NAMES = ("k1", "k2", "p1", "p2", "k3")
 
 
@@ -298,7 +299,8 @@ def initial_values(model: Model, data: MeasurementSet, unknown: Sequence[str]) -
     """
     unknown_set = set(unknown)
     X0 = model.nominal
-    frame_poses0 = np.asarray(modeler(model, X0).frame_poses, dtype=float)
+    # every frame's pose at the nominal values, once (no points, cameras or shapes: issue 16)
+    frame_poses0 = np.asarray(modeler(model, X0, Needs(frames=None)).frame_poses, dtype=float)
     values: dict[str, float] = {}
     obs = _PlanarPoints(model, data, X0)
     cameras = sorted({int(c) for c in obs.keys[:, 0]})
@@ -343,7 +345,7 @@ def initial_values(model: Model, data: MeasurementSet, unknown: Sequence[str]) -
 
     def parent_inverse(frame) -> np.ndarray:
         if frame.parent not in parents:
-            parents[frame.parent] = np.linalg.inv(_frame_world(model, X0, frame.parent))
+            parents[frame.parent] = np.eye(4) if frame.parent < 0 else np.linalg.inv(frame_poses0[frame.parent])
         return parents[frame.parent]
 
     # Further cameras: their pose relative to the reference from the views both see.
@@ -449,7 +451,7 @@ def calibrate_cameras(
     estimate: Sequence[str] | None = None,
     *,
     initialize: bool = True,
-    restarts: int = 4,
+    restarts: int | None = None,
     seed: int | None = 0,
     config=None,
     initial: Mapping[str, float] | None = None,
@@ -467,6 +469,13 @@ def calibrate_cameras(
         Unknowns (default: :func:`default_unknowns`).
     initialize : bool
         Start from Zhang's closed-form solution (otherwise from the nominal values).
+    restarts : int, optional
+        Starting points: the first is the start above, the others random within the search
+        ranges.  None (the default, *auto*): with Zhang's start, that start alone, and
+        :data:`AUTO_RESTARTS` starts again only when it did not converge or its fit is not
+        consistent with the stated σ (the χ² test of the fit verdict) — a closed-form start seldom
+        needs random company, a doubtful fit always gets it; without initialisation,
+        :data:`AUTO_RESTARTS` starts.  A number always runs that many.
     scale_covariance : bool
         Scale σ by the reduced χ² (OpenCV's convention); the residuals then set the noise level.
     fit, accept_poor_fit
@@ -480,20 +489,37 @@ def calibrate_cameras(
     params = ParameterSet(model, estimate, configurations=data.config_names, per_configuration=data.configurations)
     start = dict(initial_values(model, data, params.names)) if initialize else {}
     start.update(initial or {})
-    result = calibrate(
-        model,
-        data,
-        estimate,
-        restarts=restarts,
-        seed=seed,
-        config=config,
-        initial=start,
-        scale_covariance=scale_covariance,
-        progress=progress,
-        fit=fit,
-        accept_poor_fit=accept_poor_fit,
-        analysis=analysis,
-    )
+    auto = restarts is None
+    first = (1 if initialize else AUTO_RESTARTS) if restarts is None else restarts
+
+    def run(n: int):
+        return calibrate(
+            model,
+            data,
+            estimate,
+            restarts=n,
+            seed=seed,
+            config=config,
+            initial=start,
+            scale_covariance=scale_covariance,
+            progress=progress,
+            fit=fit,
+            accept_poor_fit=accept_poor_fit,
+            analysis=analysis,
+        )
+
+    result = run(first)
+    if auto and first < AUTO_RESTARTS:
+        verdict = result.verdict
+        settled = result.solver.status_best.converged and verdict is not None and verdict.tested and verdict.consistent
+        if settled:  # a weak direction (k2 against k3) is no local minimum: restarts would not help it
+            result.run = replace(result.run, note="auto: Zhang's start alone (converged, consistent with the stated σ)")
+        else:  # the same first start and random ones beside it: never worse than the first run
+            if progress is not None:
+                progress(f"the fit from Zhang's start is not consistent with the stated σ: {AUTO_RESTARTS} starts")
+            result = run(AUTO_RESTARTS)
+            note = f"auto: {AUTO_RESTARTS} starts (from Zhang's start alone: not converged or not consistent with σ)"
+            result.run = replace(result.run, note=note)
     cams = sorted({m.refs["camera"] for m in data if m.kind == "image_point"}, key=model.camera_index)
     values = result.values
     std = result.std
