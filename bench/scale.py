@@ -4,10 +4,12 @@
    from 13, 100, 500 and 2,000 synthetic views (0.3 px noise), warm: mbcal's structured solve
    (Zhang's closed-form start, Schur-complement Marquardt, σ of the intrinsics from the reduced
    system) beside ``cv2.calibrateCamera`` on the same points; `calibrate_cameras` (the full
-   report, analysed from the blocks beyond the dense analysis' size).  Every size runs in a fresh
-   process (``--camera-row N``), so that its peak memory is its own: the process's peak, and
-   the part the mbcal solve and analysis added above the simulated data.  Time per iteration and
-   the largest difference of the estimates from OpenCV's.
+   report, analysed from the blocks beyond the dense analysis' size).  Every size runs in two fresh
+   processes (``--camera-row N``), so that its peak memory is its own: the first from an empty
+   cache folder (every program compiled), the second loading those programs; the process's peak,
+   the part the mbcal solve and analysis added above the simulated data, and the resident memory
+   after each step (a table).  Time per iteration and the largest difference of the estimates
+   from OpenCV's.
 2. BAL Ladybug-49 (``../shared/data/bal/problem-49-7776-pre.txt``: 49 cameras, 7,776 points,
    31,843 observations, 23,769 unknowns) from the file's initial values through the low-level
    structured API: Σr² and wall time, the first call (compile) separately; with ``--scipy`` also
@@ -34,6 +36,7 @@ import platform
 import resource
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -86,6 +89,24 @@ def resident_mb() -> float:
         return peak_mb()
 
 
+# Resident memory after each step of a camera row (MB) and the peak so far: where the memory goes.
+MEMORY: dict[str, tuple[float, float]] = {}
+STEPS = {
+    "start": "Python, NumPy, JAX, OpenCV and mbcal imported",
+    "data": "the simulated views (simulate_views: the measurement objects, the simulation's programs)",
+    "problem": "Problem, structure_of and Zhang's start",
+    "solve": "the first structured solve (compiling or loading its program)",
+    "analysis": "σ of the shared unknowns from the reduced system (analyze_structured)",
+    "warm": "the warm repeats of the whole path",
+    "report": "calibrate_cameras, the full report (analysed from the blocks beyond ~250 views)",
+}
+
+
+def mark(step: str) -> None:
+    """Record the resident memory after ``step`` (the first time it is reached)."""
+    MEMORY.setdefault(step, (resident_mb(), peak_mb()))
+
+
 def synthetic_views(model: mbcal.Model, n: int, *, seed: int = 1, sigma: float = 0.3) -> mbcal.MeasurementSet:
     """Image points of the model's board in ``n`` random views at TRUTH (:func:`simulate_views`)."""
     return simulate_views(model, n, TRUTH, seed=seed, sigma=sigma)[0]
@@ -133,11 +154,14 @@ def mbcal_structured(model: mbcal.Model, data: mbcal.MeasurementSet, repeats: in
     out: dict = {}
 
     def run():
+        for name in ("problem", "structure", "solved", "analysis"):  # a repeat holds one path's objects
+            out.pop(name, None)
         problem = Problem(model, data, estimate)
         structure = structure_of(problem)
         assert structure is not None
         x0 = problem.params.from_dict(initial_values(model, data, problem.params.names))
         args = (problem.y, problem.params.known)
+        mark("problem")
         t = time.perf_counter()
         solved = least_squares_structured(
             problem.residual_function,
@@ -149,13 +173,16 @@ def mbcal_structured(model: mbcal.Model, data: mbcal.MeasurementSet, repeats: in
             cache_key=problem.fingerprint(),  # as calibrate: a new Problem finds the program it traced
         )
         out["solve"] = time.perf_counter() - t
+        mark("solve")
         analysis = analyze_structured(problem.residual_function, solved.x_best, structure, args=args)
+        mark("analysis")
         out.update(problem=problem, structure=structure, solved=solved, analysis=analysis)
 
     t0 = time.perf_counter()
     run()
     out["first"] = time.perf_counter() - t0
     out["warm"] = best_of(run, repeats)
+    mark("warm")
     names = out["problem"].params.names
     x = out["solved"].x_best
     out["values"] = {k: float(x[names.index(k)]) for k in INTRINSICS}
@@ -169,14 +196,17 @@ def mbcal_structured(model: mbcal.Model, data: mbcal.MeasurementSet, repeats: in
 def full_report(model: mbcal.Model, data: mbcal.MeasurementSet, repeats: int) -> tuple[float, str]:
     """Warm ``calibrate_cameras`` (the full report: analysed densely up to
     DENSE_ANALYSIS_ENTRIES, from the blocks beyond) and its fit verdict's headline."""
-    out = calibrate_cameras(model, data, restarts=1)
-    return best_of(lambda: calibrate_cameras(model, data, restarts=1), repeats), out.result.verdict.verdict()
+    verdict = calibrate_cameras(model, data, restarts=1).result.verdict.verdict()  # (not held while timed)
+    return best_of(lambda: calibrate_cameras(model, data, restarts=1), repeats), verdict
 
 
-def camera_row(n: int, repeats: int) -> dict:
-    """One size of the camera benchmark, measured in this (fresh) process."""
+def camera_row(n: int, repeats: int, compare: bool = True) -> dict:
+    """One size of the camera benchmark, measured in this (fresh) process; ``compare``: also
+    OpenCV (the row that only measures memory with the programs cached leaves it out)."""
+    mark("start")
     model = mbcal.load_model(MODEL)
     data = synthetic_views(model, n)
+    mark("data")
     before = resident_mb()
     ours = mbcal_structured(model, data, repeats)
     peak = peak_mb()
@@ -189,28 +219,42 @@ def camera_row(n: int, repeats: int) -> dict:
         "data_mb": before,
         "added_mb": max(peak - before, 0.0),
     }
-    cv = opencv(model, data, repeats)
+    for name in ("problem", "structure", "solved", "analysis"):  # the report's peak is its own
+        ours.pop(name)
+    cv = opencv(model, data, repeats) if compare else None
     if cv is not None:
         row["cv_seconds"], row["cv_values"] = cv
         row["differs"] = max(abs(ours["values"][k] - cv[1][k]) / ours["std"][k] for k in INTRINSICS)
     row["report"], row["verdict"] = full_report(model, data, max(1, repeats // 2) if n <= 500 else 1)
+    mark("report")
     row["report_peak_mb"] = peak_mb()
+    row["memory"] = MEMORY
     return row
 
 
 def camera_rows(sizes: list[int], repeats: int) -> list[dict]:
-    """Each size in a fresh process: its peak memory is its own, not the largest so far."""
+    """Each size in two fresh processes, so that a peak memory is its own, not the largest so
+    far: the first with an empty cache folder (every program traced and compiled: the timed row),
+    the second with the programs it left (loaded, nothing compiled: the memory a later run needs)."""
     rows = []
     for n in sizes:
-        proc = subprocess.run(
-            [sys.executable, __file__, "--camera-row", str(n), "--repeats", str(repeats)],
-            capture_output=True,
-            text=True,
-            check=False,
-        )
-        if proc.returncode != 0:
-            raise SystemExit(f"the {n}-view row failed:\n{proc.stderr}")
-        row = json.loads(proc.stdout.strip().splitlines()[-1])
+        with tempfile.TemporaryDirectory(prefix="mbcal-scale-cache-") as cache:
+            env = {**os.environ, "MBCAL_CACHE_DIR": cache}
+
+            def run(*extra: str) -> dict:
+                proc = subprocess.run(
+                    [sys.executable, __file__, "--camera-row", str(n), *extra],
+                    capture_output=True,
+                    text=True,
+                    check=False,
+                    env=env,
+                )
+                if proc.returncode != 0:
+                    raise SystemExit(f"the {n}-view row failed:\n{proc.stderr}")
+                return json.loads(proc.stdout.strip().splitlines()[-1])
+
+            row = run("--repeats", str(repeats))
+            row["cached"] = run("--repeats", "1", "--memory-only")
         rows.append(row)
         cv_s = row.get("cv_seconds", float("nan"))
         print(
@@ -344,6 +388,31 @@ def scipy_run(bal, fun, args) -> dict:
     return {"seconds": time.perf_counter() - t, "cost": 2.0 * float(res.cost), "evaluations": int(res.nfev)}
 
 
+def memory_table(cams: list[dict]) -> list[str]:
+    """Where the memory of each camera row goes: resident after each step (the peak so far in
+    parentheses), compiling every program and loading them from the cache."""
+    lines = [
+        "### Memory of the camera rows",
+        "",
+        "Resident memory (MB) of the process after each step, the peak so far in parentheses; each size "
+        "in two fresh processes: *compiling* starts from an empty cache folder (every program traced "
+        "and compiled: the timed rows above), *cached* is a second process that loads those programs.  "
+        "Steps: " + "; ".join(f"*{k}*: {v}" for k, v in STEPS.items()) + ".",
+        "",
+        "| views | programs | " + " | ".join(STEPS) + " |",
+        "|--:|---|" + "--:|" * len(STEPS),
+    ]
+    for r in cams:
+        for label, row in (("compiling", r), ("cached", r.get("cached"))):
+            if not row or "memory" not in row:
+                continue
+            cells = [
+                f"{row['memory'][k][0]:.0f} ({row['memory'][k][1]:.0f})" if k in row["memory"] else "—" for k in STEPS
+            ]
+            lines.append(f"| {r['views']} | {label} | " + " | ".join(cells) + " |")
+    return [*lines, ""]
+
+
 def section(cams: list[dict], bal: dict, scaling: list[dict], plot: str | None, quick: bool) -> str:
     lines = [
         BEGIN,
@@ -391,6 +460,7 @@ def section(cams: list[dict], bal: dict, scaling: list[dict], plot: str | None, 
         f"mbcal's σ of fx at the largest size: {cams[-1]['std']['cam.fx']:.3g} px.  The full report's verdict "
         f"at the largest size: {cams[-1]['verdict']}.",
         "",
+        *memory_table(cams),
         f"### Bundle adjustment: {bal['file']} ({bal['cameras']} cameras, {bal['points']:,} points, "
         f"{bal['observations']:,} observations, {bal['n']:,} unknowns)",
         "",
@@ -484,10 +554,11 @@ def main(argv=None) -> int:
         "--scaling", default="3,10,30,100,300,1000,1667", help="views of the growing-unknowns table (comma-separated)"
     )
     parser.add_argument("--camera-row", type=int, help=argparse.SUPPRESS)  # one size, in a fresh process
+    parser.add_argument("--memory-only", action="store_true", help=argparse.SUPPRESS)  # that row without OpenCV
     args = parser.parse_args(argv)
     repeats = 1 if args.quick else args.repeats
     if args.camera_row:
-        print(json.dumps(camera_row(args.camera_row, repeats)))
+        print(json.dumps(camera_row(args.camera_row, repeats, compare=not args.memory_only)))
         return 0
     sizes = [13] if args.quick else [int(v) for v in args.views.split(",")]
     cams = camera_rows(sizes, repeats)

@@ -215,8 +215,8 @@ def _load_or_export(export: Any, folder: Path, key: str, jitted: Callable, examp
             atomic_write(path, bytes(program.serialize()))
         except OSError:
             pass  # a read-only cache: still correct, only slower next time
-    from mbcal._jax import jax
+    from mbcal._jax import jit
 
     # Jitted, so that its executable lives (and dies) with this cache's entry: called eagerly,
     # an exported program is compiled into JAX's unbounded cache of primitives instead.
-    return jax.jit(program.call)
+    return jit(program.call)

@@ -14,6 +14,7 @@ lock; after each step the angles are read back from the rotation.
 
 from __future__ import annotations
 
+import copy
 import functools
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -21,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from mbcal._jax import jax, jnp
+from mbcal._jax import jax, jit, jnp
 from mbcal.cache import PROGRAMS, Hasher, code_fingerprint, enable_compilation_cache, exported
 from mbcal.errors import SolverError
 from mbcal.geometry import transforms as geo
@@ -298,12 +299,42 @@ class Problem:
         fn = cache.get(key)
         if fn is None:
             wanted = Needs(points=frozenset(int(p) for p in points))
+            traced = self._programs.problem  # not self: the cached program must not keep this problem's data
 
             def positions(xx, known):
-                return self.scenes(xx, known, wanted).points[configs, points]
+                return traced.scenes(xx, known, wanted).points[configs, points]
 
-            jitted = jax.jit(lambda xx, known: (positions(xx, known), jax.jacfwd(positions)(xx, known)))
+            jitted = jit(lambda xx, known: (positions(xx, known), jax.jacfwd(positions)(xx, known)))
             fn = self._programs._saveable("points " + Hasher().add(configs, points).hexdigest(), jitted)
+            cache.clear()
+            cache[key] = fn
+        P, J = fn(np.asarray(x, dtype=float), self.params.known)
+        return np.asarray(P), np.asarray(J)
+
+    def point_jacobian_compressed(
+        self, x: Array, configs: np.ndarray, points: np.ndarray, slot: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """World positions (k, 3) of points in configurations and their Jacobians (k, 3, c) with
+        respect to ``dc`` in ``x + dc[slot]`` (``slot``: each unknown's column of c).  With a block
+        structure's slots (:meth:`mbcal.structured.Structure.arrays`) a point's columns are its
+        configuration's block and the shared unknowns: c = nb + ks tangents, not n (issue 15)."""
+        key = (configs.tobytes(), points.tobytes(), slot.tobytes())
+        cache = self._programs.compressed_points  # one entry: the latest points asked for
+        fn = cache.get(key)
+        if fn is None:
+            wanted = Needs(points=frozenset(np.unique(points).tolist()))
+            c = int(slot.max()) + 1 if len(slot) else 0
+            traced = self._programs.problem  # not self: the cached program must not keep this problem's data
+
+            def positions(dc, xx, known):
+                return traced.scenes(xx + dc[slot], known, wanted).points[configs, points]
+
+            def both(xx, known):
+                zero = jnp.zeros(c)
+                return positions(zero, xx, known), jax.jacfwd(positions)(zero, xx, known)
+
+            name = "compressed points " + Hasher().add(configs, points, slot).hexdigest()
+            fn = self._programs._saveable(name, jit(both))
             cache.clear()
             cache[key] = fn
         P, J = fn(np.asarray(x, dtype=float), self.params.known)
@@ -409,12 +440,13 @@ class _Programs:
     def __init__(self, problem: Problem, fingerprint: str | None = None):
         fun = problem._make_residual()
         self.fun = fun
+        self.problem = problem  # what later programs of this structure trace from (a stripped copy when cached)
         self.local = problem.local
         self.fingerprint = fingerprint
-        self.residual = self._saveable("residual", jax.jit(fun))
-        self.jacobian = self._saveable("jacobian", jax.jit(jax.jacfwd(fun)))
+        self.residual = self._saveable("residual", jit(fun))
+        self.jacobian = self._saveable("jacobian", jit(jax.jacfwd(fun)))
         # r and J from one pass (jacfwd computes r anyway): the post-solve analysis needs both.
-        both = jax.jit(jax.jacfwd(lambda x, y, known: (lambda r: (r, r))(fun(x, y, known)), has_aux=True))
+        both = jit(jax.jacfwd(lambda x, y, known: (lambda r: (r, r))(fun(x, y, known)), has_aux=True))
         self.both = self._saveable("both", both)
 
         def values(x, known):
@@ -423,14 +455,15 @@ class _Programs:
             origins = problem.scenes(x, known, Needs.everything()).frame_poses[..., :3, 3]
             return problem._predict(x, known), problem._visible(x, known), origins
 
-        self.values = self._saveable("values", jax.jit(values))
+        self.values = self._saveable("values", jit(values))
 
         def whole(x, known):
             scenes = problem.scenes(x, known, Needs.everything())
             return tuple(getattr(scenes, name) for name in _SCENE_ARRAYS)
 
-        self.whole = self._saveable("whole scenes", jax.jit(whole))
+        self.whole = self._saveable("whole scenes", jit(whole))
         self.points: dict[Any, Any] = {}
+        self.compressed_points: dict[Any, Any] = {}
 
     def _saveable(self, name: str, jitted: Any) -> Any:
         """``jitted``, saved in the cache folder on its first call (:func:`mbcal.cache.exported`), so
@@ -467,7 +500,19 @@ def _shared_programs(problem: Problem) -> _Programs:
     key = (fingerprint, id(problem.model), tuple(id(g.model) for g in problem.groups))
     # The entry keeps the first problem, so its model and measurement models stay alive: their
     # ids in the key cannot be reused by other objects while the entry exists.
-    return PROGRAMS.get(key, lambda: _Programs(problem, fingerprint))
+    return PROGRAMS.get(key, lambda: _Programs(_kept(problem), fingerprint))
+
+
+def _kept(problem: Problem) -> Problem:
+    """A shallow copy of ``problem`` for the programs that :data:`PROGRAMS` keeps: what the traced
+    functions read (the model, the unknowns, the groups' index arrays), without the measurement
+    set, its columns and the row tables, which the entry kept alive after the problem was gone
+    (issue 15: 2,000 views' 108,000 measurement objects, ~50 MB, for every structure cached)."""
+    kept = copy.copy(problem)
+    kept.__dict__.update(measurements=None, _columns=None, row_measurement=None, row_component=None)
+    kept.__dict__.pop("measurement_rows", None)
+    kept.local = OrientationSteps(kept) if kept.orientations else None
+    return kept
 
 
 class OrientationSteps:

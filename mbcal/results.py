@@ -14,6 +14,7 @@ from mbcal.measurements.registry import get_model
 from mbcal.observability import Observability, PointUncertainty
 from mbcal.problem import Problem
 from mbcal.solver import LeastSquaresResult, SolverConfig, Status
+from mbcal.structured import BlockCovariance
 from mbcal.text import fmt, table
 from mbcal.units import to_display
 
@@ -32,7 +33,7 @@ __all__ = [
 REPORT_FORMAT = "mbcal-report-1"
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)  # 2,000 views: 108,000 rows (issue 15)
 class ResidualRow:
     """One measurement at the solution."""
 
@@ -279,11 +280,35 @@ def _observability_json(obs) -> dict[str, Any]:
 
 
 def _covariance_json(names, cov, corr) -> dict[str, Any]:
+    if isinstance(cov, BlockCovariance):
+        return _block_covariance_json(cov)
     return {
         "names": list(names),
-        "covariance": [[_num(v) for v in row] for row in cov],
-        "correlation": [[_num(v) for v in row] for row in corr],
+        "covariance": _matrix_json(cov),
+        "correlation": _matrix_json(corr),
     }
+
+
+def _matrix_json(a) -> list[list[float | None]]:
+    return [[_num(v) for v in row] for row in np.asarray(a, dtype=float)]
+
+
+def _block_covariance_json(cov: BlockCovariance) -> dict[str, Any]:
+    """A structured problem's covariance by its blocks, never n × n (issue 15: 2,000 views of a
+    board have 12,009 unknowns, a 144-million-entry matrix): the shared unknowns' covariance and
+    correlation, and each block's own (its marginal; σ of every unknown is in ``parameters``)."""
+    s = cov.structure
+    corr = cov.correlation()
+
+    def parts(idx: np.ndarray) -> list[dict[str, Any]]:
+        a, b = idx[:, :, None], idx[:, None, :]  # every block's (k, k) at once
+        C, R = cov[a, b], corr[a, b]
+        return [
+            {"names": [cov.names[j] for j in row], "covariance": _matrix_json(C[k]), "correlation": _matrix_json(R[k])}
+            for k, row in enumerate(idx)
+        ]
+
+    return {"names": list(cov.names), "form": "blocks", "shared": parts(s.shared), "blocks": parts(s.blocks)}
 
 
 # ---- hard bounds active at the solution (issue 14, item 2) ---------------------------------------

@@ -43,11 +43,10 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from mbcal._jax import jax, jnp, to_device
+from mbcal._jax import jax, jit, jnp
 from mbcal.cache import Hasher, exported
 from mbcal.datasets.bal import BalProblem
 from mbcal.errors import SolverError
-from mbcal.modeling import Needs
 from mbcal.observability import (
     Observability,
     ObservabilityConfig,
@@ -64,7 +63,9 @@ from mbcal.solver import (
     Status,
     _Identity,
     _solve_spd,
+    _solve_step,
     marquardt_trial,
+    restart_loop,
     robust_system,
     step_status,
 )
@@ -86,6 +87,8 @@ __all__ = [
     "compressed_jacobian",
     "check_structure",
     "BlockCovariance",
+    "block_point_uncertainties",
+    "joint_from_dense",
     "StructuredLinear",
     "observability_structured",
 ]
@@ -324,7 +327,7 @@ class _State(NamedTuple):
     x: Array
     r: Array
     rw: Array
-    Jw: Array  # (m, nb + ks) compressed, weighted
+    Jw: Array  # the normal equations' blocks (_Normal) at x, packed: not the (m, nb + ks) Jacobian
     cost: Array
     x_try: Array
     predicted: Array
@@ -339,17 +342,18 @@ class _State(NamedTuple):
 def _lm_structured(
     fun: Callable,
     config: SolverConfig,
-    x0: Array,
+    x0s: Array,
     args: tuple,
     ix: _Arrays,
     sizes: tuple[int, int, int, int, int, bool],
     local: LocalParameterisation | None,
 ) -> tuple:
-    """The Schur-complement Marquardt loop from one start: (x, cost, status, iterations)."""
+    """The Schur-complement Marquardt loop from each start (rows of ``x0s``): (x, cost, status,
+    iterations) per start (the restarts run in :func:`mbcal.solver.restart_loop`)."""
     m, B, G, P, nb, padded = sizes
     loss, scale = config.loss, config.loss_scale
     assert scale is not None
-    n = x0.shape[0]
+    n = x0s.shape[1]
     ks = ix.shared.shape[1]
     c = nb + ks
 
@@ -368,7 +372,17 @@ def _lm_structured(
                 jnp.zeros(c)
             )
 
-    weighted = functools.partial(robust_system, loss, scale)
+    shapes = ((B, nb, nb), (G, ks, ks), (P, nb, ks), (B, nb), (G, ks))
+    ends = np.cumsum([int(np.prod(shape)) for shape in shapes])
+
+    def weighted(r, J):
+        # The loop keeps the normal equations' blocks, not the compressed Jacobian: at 2,000 views
+        # (m = 215,764 rows × 15) its carried and selected copies were ~50 MB (issue 15).
+        cost, rw, Jw = robust_system(loss, scale, r, J)
+        return cost, rw, jnp.concatenate([jnp.ravel(a) for a in _normal(Jw, rw, ix, B, G, P, nb, padded)])
+
+    def unpack(packed):
+        return _Normal(*(packed[a:b].reshape(shape) for a, b, shape in zip([0, *ends[:-1]], ends, shapes)))
 
     def gradient_small(rw, N):
         # ‖J_j‖² is the diagonal of JᵀJ: of U for block unknowns, of V for shared ones.
@@ -383,21 +397,22 @@ def _lm_structured(
 
         return jnp.maximum(cosine(gb, colb), cosine(gs, cols)) <= config.gtol
 
-    state0 = _State(
-        x=x0,
-        r=jnp.zeros(m),
-        rw=jnp.zeros(m),
-        Jw=jnp.zeros((m, c)),
-        cost=jnp.asarray(jnp.inf),
-        x_try=x0,
-        predicted=jnp.asarray(0.0),
-        lam=jnp.asarray(config.lambda_init),
-        nu=jnp.asarray(2.0),
-        Db=jnp.zeros((B, nb)),
-        Ds=jnp.zeros((G, ks)),
-        it=jnp.int32(0),
-        status=jnp.int32(0),
-    )
+    def start(x0):
+        return _State(
+            x=x0,
+            r=jnp.zeros(m),
+            rw=jnp.zeros(m),
+            Jw=jnp.zeros(int(ends[-1])),
+            cost=jnp.asarray(jnp.inf),
+            x_try=x0,
+            predicted=jnp.asarray(0.0),
+            lam=jnp.asarray(config.lambda_init),
+            nu=jnp.asarray(2.0),
+            Db=jnp.zeros((B, nb)),
+            Ds=jnp.zeros((G, ks)),
+            it=jnp.int32(0),
+            status=jnp.int32(0),
+        )
 
     def body(state: _State) -> _State:
         x, r, rw, Jw, cost, x_try, predicted, lam, nu, Db, Ds, it, status = state
@@ -405,8 +420,7 @@ def _lm_structured(
         first, ok, accept, actual = trial.first, trial.ok, trial.accept, trial.actual
         x, r, rw, Jw, cost, lam, nu = trial.x, trial.r, trial.rw, trial.Jw, trial.cost, trial.lam, trial.nu
         it = it + 1
-        Jb, Js = Jw[:, :nb], Jw[:, nb:]
-        N = _normal(Jw, rw, ix, B, G, P, nb, padded)
+        N = unpack(Jw)
         status = jnp.where(first & ~ok, Status.NON_FINITE, 0)
         tiny = (actual <= config.ftol * cost) & (predicted <= config.ftol * cost)
         status = jnp.where((status == 0) & accept & ~first & tiny, Status.CONVERGED_COST, status)
@@ -423,26 +437,36 @@ def _lm_structured(
         S = _reduced(Ui, Vd, N.W, ix, G)
         ub = jnp.einsum("bij,bj->bi", Ui, N.gb)  # Ũ⁻¹ g_b
         rhs = -N.gs + jax.ops.segment_sum(jnp.einsum("pij,pi->pj", N.W, ub[ix.pair_block]), ix.pair_group, G)
-        ds = _solve_spd(S, rhs.reshape(-1)).reshape(G, ks)  # Cholesky (unrolled up to 16 unknowns)
+        # LAPACK's Cholesky: one small system per restart; unrolled (as the blocks' inverses, which
+        # it vectorises across blocks) its 9 × 9 took 0.3 s of a cold first call's compile (issue 16).
+        ds = _solve_step(S, rhs.reshape(-1)).reshape(G, ks)
         Wds = jax.ops.segment_sum(jnp.einsum("pij,pj->pi", N.W, ds[ix.pair_group]), ix.pair_block, B)
         db = -jnp.einsum("bij,bj->bi", Ui, N.gb + Wds)
         finite_step = jnp.all(jnp.isfinite(db)) & jnp.all(jnp.isfinite(ds))
         db = jnp.where(finite_step, db, 0.0)
         ds = jnp.where(finite_step, ds, 0.0)
         delta = jnp.zeros(n).at[ix.blocks].set(db).at[ix.shared].set(ds)
-        # The linear model's decrease: −(2 gᵀδ + ‖J δ‖²).
-        Jd = jnp.sum(Jb * db[ix.row_block], axis=1) + jnp.sum(Js * ds[ix.row_group], axis=1)
+        # The linear model's decrease: −(2 gᵀδ + ‖J δ‖²), ‖J δ‖² = δᵀ JᵀJ δ from the blocks.
+        JdJd = (
+            jnp.einsum("bi,bij,bj->", db, N.U, db)
+            + 2.0 * jnp.einsum("pi,pij,pj->", db[ix.pair_block], N.W, ds[ix.pair_group])
+            + jnp.einsum("gi,gij,gj->", ds, N.V, ds)
+        )
         gd = jnp.sum(N.gb * db) + jnp.sum(N.gs * ds)
-        predicted = jnp.where(finite_step, -(2.0 * gd + jnp.sum(Jd * Jd)), -1.0)
+        predicted = jnp.where(finite_step, -(2.0 * gd + JdJd), -1.0)
         status = step_status(config, status, finite_step, delta, x, lam, it)
         x_next = x + delta if local is None else local.plus(x, delta)
         x_try = jnp.where(finite_step, x_next, x)
         return _State(x, r, rw, Jw, cost, x_try, predicted, lam, nu, Db, Ds, it, status.astype(jnp.int32))
 
-    final = jax.lax.while_loop(lambda s: s.status == 0, body, state0)
-    cost = jnp.where(final.status == Status.NON_FINITE, jnp.inf, weighted(final.r, jnp.zeros((m, 1)))[0])
-    x = final.x if local is None else local.represent(final.x, x0)
-    return x, cost, final.status, final.it
+    def finish(final: _State, x0: Array) -> tuple:
+        total = robust_system(loss, scale, final.r, jnp.zeros((m, 1)))[0]
+        cost = jnp.where(final.status == Status.NON_FINITE, jnp.inf, total)
+        x = final.x if local is None else local.represent(final.x, x0)
+        return x, cost, final.status, final.it
+
+    final = restart_loop(lambda s: s.status == 0, body, jax.vmap(start)(x0s))
+    return jax.vmap(finish)(final, x0s)
 
 
 # Few programs, as in mbcal.solver: each compiled program holds hundreds of XLA's memory maps, and a
@@ -452,9 +476,9 @@ def _compiled(fun: Callable, config: SolverConfig, sizes: tuple[int, ...], wrapp
     local = None if wrapped is None else wrapped.obj
 
     def batch(x0s, args, ix):
-        return jax.vmap(lambda x0: _lm_structured(fun, config, x0, args, _Arrays(*ix), sizes, local))(x0s)  # type: ignore[arg-type]
+        return _lm_structured(fun, config, x0s, args, _Arrays(*ix), sizes, local)  # type: ignore[arg-type]
 
-    return jax.jit(batch)
+    return jit(batch)
 
 
 def least_squares_structured(
@@ -515,7 +539,7 @@ def _compressed_program(fun: Callable, c: int, wrapped: _Identity | None) -> Cal
 
         return jax.jacfwd(f, has_aux=True)(jnp.zeros(c))
 
-    return jax.jit(jac)
+    return jit(jac)
 
 
 def compressed_jacobian(
@@ -562,6 +586,42 @@ def check_structure(fun: Callable[..., Array], x: Array, structure: Structure, a
 # ---- structure of a model-built problem ----------------------------------------------------------
 
 
+def block_point_uncertainties(
+    problem: Problem,
+    structure: Structure,
+    joint: np.ndarray,
+    x: np.ndarray,
+    cfg_idx: np.ndarray,
+    idx: np.ndarray,
+    items: Sequence[tuple[str, str, str | None]],
+    eyes: Sequence[np.ndarray | None] | np.ndarray,
+) -> list[PointUncertainty]:
+    """Point uncertainties of a problem with a block per configuration (:func:`structure_of`)
+    from each point's compressed Jacobian and its block's joint covariance with the shared
+    unknowns ``joint`` (B, nb + ks, nb + ks): k × 3 × (nb + ks) numbers, where the dense way
+    formed k × 3 × n (100 views of a board: 5,398 points × 3 × 609, 79 MB and 70 ms)."""
+    if not len(items):
+        return []
+    P, Jp = problem.point_jacobian_compressed(x, cfg_idx, idx, structure.arrays()["slot"])
+    used = np.any(Jp != 0, axis=1)  # (k, c)
+    bad = ~np.isfinite(np.diagonal(joint, axis1=1, axis2=2))  # (B, c): the unobservable unknowns
+    finite = np.where(np.isfinite(joint), joint, 0.0)
+    covs = np.empty((len(items), 3, 3))
+    for a in range(0, len(items), 8192):  # in chunks: the gathered (k, c, c) would be large
+        k = slice(a, a + 8192)
+        covs[k] = np.einsum("kic,kcd,kjd->kij", Jp[k], finite[cfg_idx[k]], Jp[k])
+    covs[np.any(used & bad[cfg_idx], axis=1)] = np.inf
+    return point_uncertainties(items, P, None, None, eyes, covariances=covs)
+
+
+def joint_from_dense(structure: Structure, covariance: np.ndarray) -> np.ndarray:
+    """Each block's joint covariance with the shared unknowns (B, nb + ks, nb + ks), read from a
+    dense covariance (what :meth:`BlockCovariance.joint` computes from the factors)."""
+    s = structure
+    idx = np.concatenate([s.blocks, np.broadcast_to(s.shared[0], (s.n_blocks, s.ks))], axis=1)
+    return np.asarray(covariance, dtype=float)[idx[:, :, None], idx[:, None, :]]
+
+
 def structure_of(problem: Problem) -> Structure | None:
     """The block structure of a calibration problem, or None when it has none worth using.
 
@@ -593,11 +653,9 @@ def structure_of(problem: Problem) -> Structure | None:
     shared = np.array(sorted(set(shared_positions)), dtype=np.int64)[None, :]
     if blocks.size + shared.size != params.size:
         return None
-    configs = {name: i for i, name in enumerate(params.configurations)}
     row_block = np.zeros(problem.n_residuals, dtype=np.int64)
-    measurements = problem.measurements.measurements
-    config_of = np.array([configs[m.config] for m in measurements], dtype=np.int64)
-    row_block[: problem.size] = config_of[problem.row_measurement]
+    for g in problem.groups:  # a row's block: its measurement's configuration
+        row_block[g.start : g.start + g.rows] = np.repeat(g.batch.config, g.model.size)
     block_of = np.full(params.size, -1, dtype=np.int64)
     block_of[blocks] = np.arange(len(blocks))[:, None]
     for k, j in enumerate(problem.prior_index):
@@ -730,7 +788,10 @@ def _blocks_of_normal(Jc: np.ndarray, structure: Structure, ix: dict) -> tuple[n
     nb, B, G = structure.nb, structure.n_blocks, structure.n_groups
     P = len(ix["pair_block"])
     if ix["padded"]:
-        Jp = np.concatenate([Jc, np.zeros((1, Jc.shape[1]))])[ix["pair_rows"]]  # (P, L, c)
+        # (P, L, c) gathered straight from Jc, the padding (index m) zeroed after: no padded copy of Jc
+        rows = ix["pair_rows"]
+        Jp = np.take(Jc, np.minimum(rows, len(Jc) - 1), axis=0, out=np.empty((*rows.shape, Jc.shape[1])))
+        Jp[rows == len(Jc)] = 0.0
         A = np.matmul(Jp.transpose(0, 2, 1), Jp)
         U = _segment_sum(np, A[:, :nb, :nb], ix["pair_block"], B)
         V = _segment_sum(np, A[:, nb:, nb:], ix["pair_group"], G)
@@ -867,17 +928,6 @@ fit verdict, point uncertainties) is computed from the blocks (:func:`observabil
 _LANCZOS_DENSE = 64  # below this many unknowns an operator is formed and decomposed exactly
 
 
-def _column_scales(structure: Structure, row_block: np.ndarray, scales: np.ndarray) -> np.ndarray:
-    """(m, nb + ks) the scale of each compressed column for each row."""
-    return np.concatenate(
-        [
-            scales[structure.blocks][row_block],
-            np.broadcast_to(scales[structure.shared[0]], (len(row_block), structure.ks)),
-        ],
-        axis=1,
-    )
-
-
 class _BlockFactor:
     """(JᵀJ)⁺ of the rows of a compressed Jacobian with one shared group, by blocks (without
     forming JᵀJ, so that rank decisions see J's singular values, not their squares):
@@ -890,10 +940,21 @@ class _BlockFactor:
     ``solve`` applies the generalised inverse C = [[U⁺ + Y S⁺ Yᵀ, −Y S⁺], [−S⁺ Yᵀ, S⁺]] (the
     inverse when J has full rank; with the null space projected out, the pseudo-inverse)."""
 
-    def __init__(self, Jc: np.ndarray, row_block: np.ndarray, B: int, nb: int, rtol: float, exact: bool = False):
+    def __init__(
+        self,
+        Jc: np.ndarray,
+        row_block: np.ndarray,
+        B: int,
+        nb: int,
+        rtol: float,
+        exact: bool = False,
+        scales: tuple[np.ndarray, np.ndarray] | None = None,
+    ):
         """``exact``: judge the rank relative to J's largest singular value (Lanczos iterations on
         JᵀJ), as the dense analysis does; otherwise relative to the largest of the blocks' and the
-        reduced system's."""
+        reduced system's.  ``scales``: the factor is of J with each column times its unknown's
+        scale, (B, nb) for the blocks' and (ks,) for the shared ones (applied to the padded rows:
+        no scaled copy of J, 26 MB at 2,000 views)."""
         m, c = Jc.shape
         ks = c - nb
         self.B, self.nb, self.ks = B, nb, ks
@@ -901,10 +962,13 @@ class _BlockFactor:
         L = max(int(counts.max()) if m else 0, 1)
         order = np.argsort(row_block, kind="stable")
         first = np.concatenate([[0], np.cumsum(counts)])[:-1]
-        sorted_blocks = row_block[order]
-        within = np.arange(m) - first[sorted_blocks]
+        within = np.empty(m, dtype=np.int64)  # each row's place among its block's rows
+        within[order] = np.arange(m) - first[row_block[order]]
         table = np.zeros((B, L, c))
-        table[sorted_blocks, within] = Jc[order]
+        table[row_block, within] = Jc  # (not Jc[order]: a copy of the m × c rows)
+        if scales is not None:
+            table[:, :, :nb] *= scales[0][:, None, :]
+            table[:, :, nb:] *= scales[1]
         if L < nb:  # the thin SVD needs at least nb rows: zero rows change nothing
             table = np.concatenate([table, np.zeros((B, nb - L, c))], axis=1)
         self.table = table
@@ -918,9 +982,10 @@ class _BlockFactor:
         self.smax = smax
         keep = sb > rtol * max(smax, 1e-300)
         inv = np.where(keep, 1.0 / np.where(keep, sb, 1.0), 0.0)
-        Pk = P * keep[:, None, :]
+        Pk = np.multiply(P, keep[:, None, :], out=P)  # (in place: P is not needed beyond)
         PtJs = np.einsum("bli,blk->bik", Pk, Zs)  # (B, nb, ks): P_kᵀ J_s
-        Z = Zs - np.einsum("bli,bik->blk", Pk, PtJs)  # the shared remainder per block
+        Z = np.einsum("bli,bik->blk", Pk, PtJs)
+        Z = np.subtract(Zs, Z, out=Z)  # the shared remainder per block
         Q = np.swapaxes(Qt, 1, 2)
         self.Uinv = np.einsum("bij,bj,bkj->bik", Q, inv * inv, Q)
         self.Y = np.einsum("bij,bj,bjk->bik", Q, inv, PtJs)  # U_b⁺ W_b
@@ -933,6 +998,7 @@ class _BlockFactor:
         self.shared_null = Vs[:, ~keep_s]  # (ks, k0)
         self.block_null = [(b, Q[b][:, ~keep[b]]) for b in np.nonzero(~keep.all(axis=1))[0]]
         self.rank = int(keep.sum() + keep_s.sum())
+        del self.table  # (B, L, c) rows, read by _information above only: a result keeps the factor
 
     def _information(self, v: np.ndarray) -> np.ndarray:
         """JᵀJ v for v = (all blocks' unknowns, then the shared ones), from the padded rows."""
@@ -1220,30 +1286,7 @@ class BlockCovariance:
     ) -> list[PointUncertainty]:
         """:func:`mbcal.observability.point_uncertainties` from each point's compressed Jacobian
         (its configuration's block and the shared unknowns: nb + ks tangents, not n)."""
-        if not len(items):
-            return []
-        s = self.structure
-        wanted = Needs(points=frozenset(int(p) for p in idx))
-        slot = to_device(s.arrays()["slot"])
-        c = s.nb + s.ks
-
-        def positions(dc, xx, known):
-            return problem.scenes(xx + dc[slot], known, wanted).points[cfg_idx, idx]
-
-        program = jax.jit(
-            lambda xx, known: (positions(jnp.zeros(c), xx, known), jax.jacfwd(positions)(jnp.zeros(c), xx, known))
-        )
-        P, Jp = (np.asarray(a) for a in program(to_device(x, float), to_device(problem.params.known)))
-        _, joint = self.joint()  # (B, c, c): point k's unknowns are its block's and the shared ones
-        used = np.any(Jp != 0, axis=1)  # (k, c)
-        bad = ~np.isfinite(np.diagonal(joint, axis1=1, axis2=2))  # (B, c): the unobservable unknowns
-        finite = np.where(np.isfinite(joint), joint, 0.0)
-        covs = np.empty((len(items), 3, 3))
-        for a in range(0, len(items), 8192):  # in chunks: the gathered (k, c, c) would be large
-            k = slice(a, a + 8192)
-            covs[k] = np.einsum("kic,kcd,kjd->kij", Jp[k], finite[cfg_idx[k]], Jp[k])
-        covs[np.any(used & bad[cfg_idx], axis=1)] = np.inf
-        return point_uncertainties(items, P, None, None, eyes, covariances=covs)
+        return block_point_uncertainties(problem, self.structure, self.joint()[1], x, cfg_idx, idx, items, eyes)
 
 
 class StructuredLinear:
@@ -1353,17 +1396,17 @@ def observability_structured(
     n = structure.n
     S = np.asarray(scales, dtype=float)
     rb = structure.row_block
-    Jcs = Jc * _column_scales(structure, rb, S)
+    column_scales = (S[structure.blocks], S[structure.shared[0]])
     size = problem.size
-    Jm, rbm = Jcs[:size], rb[:size]
+    Jm, rbm = Jc[:size], rb[:size]
 
-    fm = _BlockFactor(Jm, rbm, structure.n_blocks, structure.nb, config.rtol, exact=True)
+    fm = _BlockFactor(Jm, rbm, structure.n_blocks, structure.nb, config.rtol, exact=True, scales=column_scales)
     smax = fm.smax
     null = fm.null_vectors(structure)
     rank = fm.rank
-    has_priors = Jcs.shape[0] > size
+    has_priors = Jc.shape[0] > size
     if has_priors:
-        ft = _BlockFactor(Jcs, rb, structure.n_blocks, structure.nb, config.rtol, exact=True)
+        ft = _BlockFactor(Jc, rb, structure.n_blocks, structure.nb, config.rtol, exact=True, scales=column_scales)
         null_t = ft.null_vectors(structure)
     else:
         ft, null_t = fm, null

@@ -29,3 +29,29 @@ def test_benchmark_script_measures_scaling_and_writes_a_plot(tmp_path):
     assert "### Growing image points" in text and "converged" in text
     png = tmp_path / "images" / "scaling.png"
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.slow
+def test_the_hand_written_floor_residuals_are_the_seed_problems():
+    """bench/floor.py's hand-written room and arm residuals (the measured floor of bench/run.py)
+    equal mbcal's residuals and Jacobians, so the floor is the same problem."""
+    import sys
+
+    import numpy as np
+
+    from conftest import ROOT
+
+    sys.path.insert(0, str(ROOT / "bench"))
+    from floor import BUILDERS
+    from run import seed_problem
+
+    from mbcal._jax import jax
+
+    for name in ("room", "arm"):
+        problem, starts = seed_problem(name)
+        fun = BUILDERS[name](problem)
+        y, known = problem.y, problem.params.known
+        for x in starts[:4]:
+            np.testing.assert_allclose(fun(x, y, known), problem.residual_function(x, y, known), rtol=1e-10, atol=1e-10)
+            J = np.asarray(jax.jacfwd(fun)(x, y, known))
+            np.testing.assert_allclose(J, problem.jacobian(x), rtol=1e-8, atol=1e-8 * np.abs(J).max())

@@ -329,3 +329,35 @@ def test_point_uncertainties_group_equal_jacobian_patterns_exactly():
         np.testing.assert_array_equal(u.covariance, v.covariance)
         assert (np.isnan(u.parallel) and np.isnan(v.parallel)) or u.parallel == v.parallel
         assert u.perpendicular == v.perpendicular
+
+
+@pytest.mark.slow
+def test_point_uncertainties_from_block_jacobians_equal_the_dense_ones():
+    """A camera calibration's point uncertainties come from each point's compressed Jacobian
+    (its view's block and the intrinsics) and its block's joint covariance; they equal the dense
+    propagation through the full k × 3 × n Jacobian."""
+    from mbcal.observability import point_uncertainties
+    from mbcal.structured import block_point_uncertainties, joint_from_dense, structure_of
+    from mbcal.workflows.cameras import calibrate_cameras, simulate_views
+
+    model = mbcal.load_model(MODELS / "camera_calibration.mdl")
+    data, _ = simulate_views(model, 9, {"cam.fx": 805.0, "cam.k1": -0.15}, seed=5, sigma=0.3)
+    result = calibrate_cameras(model, data, restarts=1).result
+    problem, x, cov = result.problem, result.x, result.covariance
+    structure = structure_of(problem)
+    assert structure is not None and structure.n_blocks == 9
+    pts = result.points
+    assert len(pts) == len(data)
+    configs = problem.params.configurations
+    cfg_idx = np.array([configs.index(p.configuration) for p in pts])
+    idx = np.array([model.point_index(p.point) for p in pts])
+    items = [(p.point, p.configuration, p.camera) for p in pts]
+    eyes = [None] * len(pts)  # no line of sight: only the covariances are compared
+    P, J = problem.point_jacobian(x, cfg_idx, idx)
+    dense = point_uncertainties(items, P, J, cov, eyes)
+    joint = joint_from_dense(structure, cov)
+    blocks = block_point_uncertainties(problem, structure, joint, x, cfg_idx, idx, items, eyes)
+    for d, b, p in zip(dense, blocks, pts):
+        np.testing.assert_allclose(b.covariance, d.covariance, rtol=1e-9, atol=1e-22)
+        np.testing.assert_allclose(p.covariance, d.covariance, rtol=1e-9, atol=1e-22)  # what the report holds
+        np.testing.assert_allclose(b.position, d.position, rtol=0, atol=1e-12)

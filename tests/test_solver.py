@@ -106,3 +106,53 @@ def test_same_inputs_give_bit_identical_results():
     a = least_squares(rosenbrock, starts)
     b = least_squares(rosenbrock, starts)
     assert a.x.tobytes() == b.x.tobytes() and a.cost.tobytes() == b.cost.tobytes()
+
+
+def test_restart_loop_is_vmap_of_a_while_loop_bit_for_bit():
+    # Each restart runs until its own test fails; finished restarts are frozen (issue 16).
+    from mbcal._jax import jax
+    from mbcal.solver import restart_loop
+
+    def cond(s):
+        return s[1] < s[2]
+
+    def body(s):
+        return (jnp.sin(s[0]) * 1.5 + 0.1, s[1] + 1, s[2])
+
+    state = (jnp.linspace(-2.0, 3.0, 7), jnp.zeros(7, dtype=jnp.int32), jnp.arange(7, dtype=jnp.int32) * 3)
+    ours = jax.jit(lambda s: restart_loop(cond, body, s))(state)
+    plain = jax.jit(jax.vmap(lambda s: jax.lax.while_loop(cond, body, s)))(state)
+    assert [np.asarray(a).tobytes() for a in ours] == [np.asarray(b).tobytes() for b in plain]
+    assert np.asarray(ours[1]).tolist() == list(range(0, 21, 3))
+
+
+def test_mbcal_programs_take_xla_options_only_for_themselves(monkeypatch):
+    # mbcal's programs get its XLA options (compile time, issue 16) unless the user's XLA_FLAGS
+    # names the option or MBCAL_XLA_OPTIONS=off; nested in a user's transformation they are plain.
+    from jax import export
+
+    from mbcal._jax import compiler_options, jax, jit
+
+    try:
+        for env, expected in [
+            ({}, {"xla_cpu_use_fusion_emitters": False}),
+            ({"XLA_FLAGS": "--xla_cpu_use_fusion_emitters=true"}, {}),
+            ({"MBCAL_XLA_OPTIONS": "off"}, {}),
+        ]:
+            monkeypatch.delenv("XLA_FLAGS", raising=False)
+            monkeypatch.delenv("MBCAL_XLA_OPTIONS", raising=False)
+            for k, v in env.items():
+                monkeypatch.setenv(k, v)
+            compiler_options.cache_clear()
+            assert compiler_options() == (expected if jax.default_backend() == "cpu" else {})
+    finally:
+        monkeypatch.undo()
+        compiler_options.cache_clear()
+    f = jit(lambda x: jnp.sin(x) * 2.0)
+    x = jnp.linspace(0.0, 1.0, 5)
+    want = np.sin(np.linspace(0.0, 1.0, 5)) * 2.0
+    np.testing.assert_allclose(f(x), want, rtol=1e-15)
+    np.testing.assert_allclose(jax.jit(lambda y: f(y) + 1.0)(x), want + 1.0, rtol=1e-15)
+    np.testing.assert_allclose(jax.vmap(f)(x[:, None])[:, 0], want, rtol=1e-15)
+    np.testing.assert_allclose(jax.grad(lambda y: f(y).sum())(x), 2.0 * np.cos(np.linspace(0.0, 1.0, 5)), rtol=1e-15)
+    np.testing.assert_allclose(export.export(f)(x).call(x), want, rtol=1e-15)

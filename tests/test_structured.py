@@ -350,3 +350,41 @@ def test_the_verdicts_linear_algebra_from_the_blocks_equals_the_dense_one():
     blocks = [np.arange(s.start, s.stop) for s in problem.measurement_rows[:40]]
     np.testing.assert_allclose(ours.deletions(blocks)[0], dense.deletions(blocks)[0], rtol=1e-9)
     np.testing.assert_array_equal(ours.deletions(blocks)[1], dense.deletions(blocks)[1])
+
+
+@pytest.mark.slow
+def test_structured_and_dense_agree_on_the_seeds_arm_with_unknown_neck_angles():
+    """The seed's arm calibration (bench/experiments.py) with each attitude's three neck angles
+    unknown too: a block per attitude (3) beside the 7 joint offsets.  The Schur-complement solver
+    takes the dense solver's iterates, stops at the same iteration, and its σ from the reduced
+    system equals the dense inverse of JᵀJ.  (The room problem has a single configuration: no
+    block structure to compare.)"""
+    from experiments import CASES
+
+    case = CASES["arm"]
+    model = mbcal.load_model(ROOT / case.model)
+    plan = mbcal.read_measurements(ROOT / case.plan, model)
+    data = mbcal.simulate(model, plan, case.truth, noise=1.0, seed=1)
+    neck = {f"neck.q{k}@{c}": v.pop(f"neck.q{k}") for c, v in data.configurations.items() for k in (1, 2, 3)}
+    problem = Problem(model, data, [*case.unknowns, "neck.q1", "neck.q2", "neck.q3"])
+    structure = structure_of(problem)
+    assert structure is not None and structure.blocks.shape == (10, 3) and structure.shared.shape == (1, 7)
+    rng = np.random.default_rng(0)
+    x0 = problem.params.from_dict({k: v + rng.normal(0.0, 0.02) for k, v in neck.items()})
+    args = (problem.y, problem.params.known)
+    for cap in (2, 100):
+        config = SolverConfig(max_iterations=cap)
+        dense = least_squares(problem.residual_function, x0, args=args, config=config, local=problem.local)
+        ours = least_squares_structured(
+            problem.residual_function, x0, structure, args=args, config=config, local=problem.local
+        )
+        assert np.max(np.abs(ours.x_best - dense.x_best)) < 1e-10, cap
+        assert ours.iterations[0] == dense.iterations[0]
+        assert ours.cost_best == pytest.approx(dense.cost_best, rel=1e-10)
+    assert ours.status_best.converged
+    analysis = analyze_structured(problem.residual_function, ours.x_best, structure, args=args)
+    J = problem.jacobian(ours.x_best)
+    std = np.sqrt(np.diag(np.linalg.inv(J.T @ J)))
+    np.testing.assert_allclose(analysis.shared_std, std[structure.shared.ravel()], rtol=1e-7)
+    np.testing.assert_allclose(analysis.block_std, std[structure.blocks], rtol=1e-7)
+    assert analysis.rank == problem.params.size == 37

@@ -346,6 +346,9 @@ class SetBuilder:
         # of a million rows holds a handful of them, not a million.
         self._covariances: dict[tuple[str, tuple[float, ...]], np.ndarray] = {}
         self._configs: dict[str, str] = {}
+        # Likewise the refs: 2,000 views of a 54-corner board name 54 (camera, point) pairs, not
+        # 108,000 (a dict each was ~20 MB; nothing mutates a measurement's refs).
+        self._refs: dict[tuple[tuple[str, str], ...], dict[str, str]] = {}
 
     def known_value(self, name: str, value: Any, config: str | None, where: SourceSpan | None) -> None:
         if not name:
@@ -436,7 +439,10 @@ class SetBuilder:
                 raise MeasurementFileError(message, where)
         if len(self.measurements) >= MAX_MEASUREMENTS:
             raise MeasurementFileError(f"more than {MAX_MEASUREMENTS} measurements", where)
-        self.measurements.append(Measurement(mid, kind, config, refs, value, cov, data or _NO_DATA, where))
+        shared = self._refs.get(pairs := tuple(refs.items()))
+        if shared is None and len(self._refs) < 100_000:
+            shared = self._refs[pairs] = refs
+        self.measurements.append(Measurement(mid, kind, config, shared or refs, value, cov, data or _NO_DATA, where))
 
     def _values(self, record, mm: MeasurementModel, where, factor: float) -> np.ndarray | None:
         if mm.implicit_value is not None:
