@@ -378,7 +378,7 @@ PROFILE = [
     "  once, but XLA then recomputed the kinematic chain once per matrix entry: the arm 2.5×",
     "  slower), the grid rotation written out by components (arm 2× slower), optimisation",
     "  barriers (XLA:CPU removes them).",
-"- The last round (warm `calibrate_cameras`, 13 views; CPU time beside wall time to see",
+    "- The last round (warm `calibrate_cameras`, 13 views; CPU time beside wall time to see",
     "  through a load of 2–4 from other work): (1) restarts are chosen (`restarts=None`, the",
     "  default): Zhang's start alone, and 4 starts only when that fit does not converge or is",
     "  not consistent with the stated σ — each vmapped start cost ~9 ms, and a weak k2/k3",

@@ -143,7 +143,7 @@ def floor_solver(fun, n: int, iterations: int):
     r and J from one jacfwd, JᵀJ by dot, ``jnp.linalg.solve``, λ halved or tripled; no convergence
     tests, statuses, robust losses or bounds.  What mbcal's solver adds on top of the model is the
     difference to it."""
-    from mbcal._jax import jax, jnp
+    from mbcal._jax import jax, jit, jnp
 
     def single(x0, y, known):
         def evaluate(x):
@@ -160,7 +160,8 @@ def floor_solver(fun, n: int, iterations: int):
 
         return jax.lax.fori_loop(0, iterations, body, (x0, jnp.asarray(1e-3)))[0]
 
-    return jax.jit(jax.vmap(single, in_axes=(0, None, None)))
+    # compiled with the options of mbcal's own programs (mbcal._jax.jit): the same compiler on both sides
+    return jit(jax.vmap(single, in_axes=(0, None, None)))
 
 
 # ---- start-up: first call, second process ------------------------------------------------------

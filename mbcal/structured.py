@@ -609,7 +609,7 @@ def block_point_uncertainties(
     covs = np.empty((len(items), 3, 3))
     for a in range(0, len(items), 8192):  # in chunks: the gathered (k, c, c) would be large
         k = slice(a, a + 8192)
-        covs[k] = np.einsum("kic,kcd,kjd->kij", Jp[k], finite[cfg_idx[k]], Jp[k])
+        covs[k] = Jp[k] @ finite[cfg_idx[k]] @ np.swapaxes(Jp[k], 1, 2)  # batched products (einsum: 3× slower)
     covs[np.any(used & bad[cfg_idx], axis=1)] = np.inf
     return point_uncertainties(items, P, None, None, eyes, covariances=covs)
 

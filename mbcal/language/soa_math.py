@@ -371,20 +371,20 @@ def to_arrays(value: Any, kind: str) -> Any:
     R, t = value
     rows = [[R[i][0], R[i][1], R[i][2], t[i]] for i in range(3)] + [[0.0, 0.0, 0.0, 1.0]]
     flat = stack_scalars([v for row in rows for v in row])
-    from mbcal._jax import on_host, to_device
+    from mbcal._jax import on_host
 
     host = on_host(flat)
-    if host is not None:  # known values: no compiled reshape (issue 16)
-        return to_device(np.reshape(host[0], host[0].shape[:-1] + (4, 4)))
+    if host is not None:  # known values: NumPy, no compiled reshape (issue 16); JAX gets the scene once
+        return np.reshape(host[0], host[0].shape[:-1] + (4, 4))
     return jnp().reshape(flat, (4, 4))
 
 
 def stack_scalars(values: Sequence[Scalar]) -> Any:
     """Stack scalars (floats, numpy or JAX arrays that broadcast together) along a new last axis."""
     if all(isinstance(v, (float, np.ndarray)) for v in values):
-        from mbcal._jax import to_device  # not jnp.asarray: it compiles a program per shape (issue 16)
-
-        return to_device(np.stack(np.broadcast_arrays(*[np.asarray(v, dtype=float) for v in values]), axis=-1))
+        # NumPy (not jnp.asarray, which compiles a program per shape, nor a device copy per call:
+        # the modeler hands its finished arrays to JAX once; issue 16)
+        return np.stack(np.broadcast_arrays(*[np.asarray(v, dtype=float) for v in values]), axis=-1)
     xp = jnp()
     shape = xp.broadcast_shapes(*[xp.shape(v) for v in values])
     items = [xp.broadcast_to(xp.asarray(v, dtype=float), shape) for v in values]

@@ -535,18 +535,23 @@ def calibrate_cameras(
             entry[label] = (v, None if s is None or not np.isfinite(s) else float(s))
         intrinsics[cam] = entry
     views = []
-    by_view: dict[tuple[str, str], list[np.ndarray]] = {}
-    for r in result.residuals:
-        if r.kind == "image_point":
-            by_view.setdefault((r.config, r.refs["camera"]), []).append(r.residual)
-    all_err = []
-    for (config, cam), errs in by_view.items():
-        e = np.asarray(errs)
-        all_err.append(e)
-        views.append(
-            {"config": config, "camera": cam, "points": len(e), "rms": float(np.sqrt(np.mean(np.sum(e**2, axis=1))))}
-        )
-    rms = float(np.sqrt(np.mean(np.sum(np.concatenate(all_err) ** 2, axis=1)))) if all_err else float("nan")
+    rms = float("nan")
+    col = result.problem.measurements.columns().kinds.get("image_point")
+    if col is not None:  # per (view, camera) in order of first appearance, from the set's columns
+        rows = [result.residuals[i] for i in col.members.tolist()]
+        e2 = np.sum((np.array([r.measured for r in rows]) - np.array([r.predicted for r in rows])) ** 2, axis=1)
+        camera_names, camera_code = col.refs["camera"]
+        key = col.config * len(camera_names) + camera_code
+        distinct, first_row, which = np.unique(key, return_index=True, return_inverse=True)
+        count = np.bincount(which, minlength=len(distinct))
+        total = np.bincount(which, weights=e2, minlength=len(distinct))
+        configs = result.problem.measurements.columns().config_names
+        for k in np.argsort(first_row, kind="stable").tolist():
+            config, cam = configs[int(col.config[first_row[k]])], camera_names[int(camera_code[first_row[k]])]
+            views.append(
+                {"config": config, "camera": cam, "points": int(count[k]), "rms": float(np.sqrt(total[k] / count[k]))}
+            )
+        rms = float(np.sqrt(np.mean(e2)))
     return CameraCalibration(result, start, cams, intrinsics, views, rms)
 
 
