@@ -227,3 +227,22 @@ def test_the_slider_benchmark_writes_its_section_and_keeps_the_page(tmp_path):
     assert text.startswith("# Performance\n\nbench/run.py's part\n")
     assert text.count("<!-- bench/studio.py: begin -->") == 1
     assert re.search(r"\| slider step → both overlays redrawn \(page, HTTP, server\) \| [0-9.]+ \|", text)
+
+
+def test_the_printed_url_accepts_connections_at_once(tmp_path):
+    """`mbcal studio` listens before it prints its URL: a browser opened on it at once (the
+    default without --no-browser) is queued, not refused while the server starts up (CI saw
+    ERR_CONNECTION_REFUSED)."""
+    import socket
+    import urllib.parse
+
+    proc, url = _start_cli([str(ROOT / "models" / "teleexistence.mdl"), "--out", str(tmp_path / "s")], tmp_path)
+    try:
+        port = urllib.parse.urlsplit(url).port
+        with socket.create_connection(("127.0.0.1", port), timeout=10) as conn:  # no retry: at once
+            conn.sendall(f"GET /?token=x HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nConnection: close\r\n\r\n".encode())
+            conn.settimeout(30)
+            assert conn.recv(64).startswith(b"HTTP/1.1 ")  # served (a wrong token: 401/403, still an answer)
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)

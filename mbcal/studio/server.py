@@ -237,6 +237,10 @@ class StudioServer:
         except OSError as err:
             self.sock.close()
             raise MbcalError(f"cannot listen on {host}:{port}: {err.strerror}") from None
+        # Listening from here on, before the URL is printed: a browser that opens it at once waits
+        # in the backlog until uvicorn accepts, instead of being refused while uvicorn starts up
+        # (CI caught ERR_CONNECTION_REFUSED; uvicorn's own listen() on the socket is harmless).
+        self.sock.listen(128)
         self.port = self.sock.getsockname()[1]
         self.host = host
         self.token = secrets.token_urlsafe(24)
