@@ -226,8 +226,8 @@ def _point_uncertainties(
     C = len(configs)
     if points is None:  # every (point, configuration) measured, in the set's order; the first one's camera
         found = []
-        for g, col in zip(problem.groups, problem._columns.kinds.values()):
-            if "point" in col.refs:
+        for g in problem.groups:
+            if "point" in g.batch.refs:
                 cam = g.batch.refs["camera"] if "camera" in g.batch.refs else np.full(len(g.members), -1)
                 found.append((g.members, g.batch.refs["point"], g.batch.config, cam))
         if not found:

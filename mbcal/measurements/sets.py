@@ -159,7 +159,7 @@ def _build_columns(ms: Sequence[Measurement], config_names: list[str]) -> Column
         elif has_value.any():
             values[has_value] = [m.value for m in group if m.value is not None]
         data_names = list(mm.data) if mm is not None else sorted(first.data)
-        data = np.array([[m.data[k] for k in data_names] for m in group], dtype=float) if data_names else None
+        data = np.array([[m.data[k] for k in data_names] for m in group], dtype=float).reshape(len(group), -1)
         kinds[kind] = KindColumns(
             kind,
             np.asarray(positions, dtype=np.int64),
@@ -168,7 +168,7 @@ def _build_columns(ms: Sequence[Measurement], config_names: list[str]) -> Column
             values,
             has_value,
             np.stack([m.cov for m in group]),
-            data if data is not None else np.zeros((len(group), 0)),
+            data,
         )
     return Columns(config_names, kinds)
 

@@ -536,7 +536,8 @@ def calibrate_cameras(
         intrinsics[cam] = entry
     views = []
     rms = float("nan")
-    col = result.problem.measurements.columns().kinds.get("image_point")
+    columns = result.problem.measurements.columns()
+    col = columns.kinds.get("image_point")
     if col is not None:  # per (view, camera) in order of first appearance, from the set's columns
         rows = [result.residuals[i] for i in col.members.tolist()]
         e2 = np.sum((np.array([r.measured for r in rows]) - np.array([r.predicted for r in rows])) ** 2, axis=1)
@@ -545,9 +546,9 @@ def calibrate_cameras(
         distinct, first_row, which = np.unique(key, return_index=True, return_inverse=True)
         count = np.bincount(which, minlength=len(distinct))
         total = np.bincount(which, weights=e2, minlength=len(distinct))
-        configs = result.problem.measurements.columns().config_names
         for k in np.argsort(first_row, kind="stable").tolist():
-            config, cam = configs[int(col.config[first_row[k]])], camera_names[int(camera_code[first_row[k]])]
+            row = int(first_row[k])
+            config, cam = columns.config_names[int(col.config[row])], camera_names[int(camera_code[row])]
             views.append(
                 {"config": config, "camera": cam, "points": int(count[k]), "rms": float(np.sqrt(total[k] / count[k]))}
             )
