@@ -9,7 +9,9 @@
 
 from __future__ import annotations
 
+import functools
 import time
+import weakref
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, fields, replace
 from typing import Any
@@ -25,6 +27,7 @@ from mbcal.measurements.sets import MeasurementSet, measurements_from_records
 from mbcal.observability import (
     Observability,
     ObservabilityConfig,
+    PointLabels,
     PointUncertainty,
     analyze,
     point_uncertainties,
@@ -32,7 +35,7 @@ from mbcal.observability import (
     unknown_scales,
 )
 from mbcal.problem import Problem
-from mbcal.results import CalibrationResult, PlanAnalysis, ResidualRow, RunInfo
+from mbcal.results import CalibrationResult, DeferredPoints, PlanAnalysis, ResidualRow, ResidualRows, RunInfo
 from mbcal.solver import SolverConfig, least_squares, random_starts
 from mbcal.structured import (
     DENSE_ANALYSIS_ENTRIES,
@@ -41,11 +44,13 @@ from mbcal.structured import (
     StructuredLinear,
     block_point_uncertainties,
     compressed_jacobian,
-    dense_jacobian,
+    expand_jacobian,
+    held_columns,
     joint_from_dense,
     least_squares_structured,
     observability_structured,
     pays,
+    rank_candidates_structured,
     square_root_information,
     structure_of,
 )
@@ -62,6 +67,7 @@ __all__ = [
     "MAX_SOLVER_BYTES",
     "PlanAnalysis",
     "ResidualRow",
+    "ResidualRows",
     "RunInfo",
 ]
 
@@ -171,37 +177,46 @@ def _units(problem: Problem) -> dict[str, str]:
     return {u.name: u.param.unit for u in problem.params.unknowns}
 
 
-def _residual_rows(problem: Problem, x: np.ndarray, residual: np.ndarray) -> list[ResidualRow]:
+def _residual_rows(problem: Problem, x: np.ndarray, residual: np.ndarray) -> ResidualRows:
     """Each measurement at x; ``residual`` is the whitened residual at x (measurements, then priors).
 
-    Per kind as arrays (issue 16): each row's measured and predicted values are rows of one
-    private copy per kind, its normalised residual one reduction per kind."""
-    h = problem.predict(x)
+    Per kind as arrays (issue 16): a row is made only when it is read.  The predicted values come
+    from the residual, r = W (h − y) with W the whitening (1/σ, or the inverse Cholesky factor of
+    the covariance), instead of running the model again."""
     y = problem.y
     r = residual[: problem.size]
-    ms = problem.measurements.measurements
-    out: list[Any] = [None] * len(ms)
+    h = None
+    kinds = {}
+    norms = []
     for g in problem.groups:
         s = g.model.size
         part = slice(g.start, g.start + g.rows)
-        Y, H = y[part].reshape(-1, s).copy(), h[part].reshape(-1, s).copy()
-        norm = np.sqrt(np.sum(r[part].reshape(-1, s) ** 2, axis=1)).tolist()
-        for k, i in enumerate(g.members.tolist()):
-            m = ms[i]
-            out[i] = ResidualRow(m.id, m.kind, m.config, m.refs, Y[k], H[k], norm[k])  # refs: read-only, shared
-    return out
+        Y, R = y[part].reshape(-1, s), r[part].reshape(-1, s)
+        W = np.asarray(g.whiten)
+        if not (np.all(np.isfinite(W)) and (np.all(W != 0) if g.diagonal else True)):
+            h = problem.predict(x) if h is None else h  # a zero or infinite weight: the model's own h
+            H = h[part].reshape(-1, s).copy()
+        elif g.diagonal:
+            H = Y + R / W
+        else:
+            H = Y + np.linalg.solve(W, R[:, :, None])[:, :, 0]
+        kinds[g.model.kind] = (g.members, Y.copy(), H)
+        norms.append((g.members, np.sqrt(np.sum(R**2, axis=1))))
+    rows = ResidualRows(problem.measurements.measurements, kinds)
+    for members, norm in norms:
+        rows.normalized[members] = norm
+    return rows
 
 
-def _rms(problem: Problem, rows: list[ResidualRow]) -> dict[str, float]:
+def _rms(problem: Problem, rows: ResidualRows) -> dict[str, float]:
     """RMS of the residuals per kind, in the measurement's units.
 
     Image points follow OpenCV: √(Σ‖e‖² / number of points), e the 2-D pixel error.
     """
     out: dict[str, float] = {}
-    for g in problem.groups:
-        kind = g.model.kind
-        members = [rows[i] for i in g.members.tolist()]
-        e = np.array([row.measured for row in members]) - np.array([row.predicted for row in members])
+    for kind in rows.kinds:
+        _members, measured, predicted = rows.kind(kind)
+        e = measured - predicted
         if kind == "image_point":
             out[kind] = float(np.sqrt(np.mean(np.sum(e**2, axis=1))))
         else:
@@ -220,7 +235,7 @@ def _point_uncertainties(
     covariance: np.ndarray | BlockCovariance,
     points: Sequence[str] | None,
     camera: str | None,
-) -> list[PointUncertainty]:
+) -> Sequence[PointUncertainty]:
     model = problem.model
     configs = problem.params.configurations
     C = len(configs)
@@ -256,13 +271,10 @@ def _point_uncertainties(
         eyes[seen] = origins[cfg_idx[seen], frame_of[cam_idx[seen]]]
     point_names = [p.name for p in model.points]
     camera_names = [c.name for c in model.cameras]
-    items = [
-        (point_names[i], configs[c], camera_names[k] if k >= 0 else None)
-        for i, c, k in zip(idx.tolist(), cfg_idx.tolist(), cam_idx.tolist())
-    ]
+    items = PointLabels(point_names, idx, configs, cfg_idx, camera_names, cam_idx)
     if isinstance(covariance, BlockCovariance):  # a structured problem's: each point from its block (issue 15)
         return covariance.point_uncertainties(problem, x, cfg_idx, idx, items, eyes)
-    structure = structure_of(problem) if C >= 2 else None
+    structure = _structure_of(problem) if C >= 2 else None
     if structure is not None:  # a block per configuration: the points' Jacobians need nb + ks columns, not n
         joint = joint_from_dense(structure, covariance)
         return block_point_uncertainties(problem, structure, joint, x, cfg_idx, idx, items, eyes)
@@ -272,6 +284,43 @@ def _point_uncertainties(
 
 def _candidate_rows(problem: Problem, x: np.ndarray, measured_keys: set) -> list[tuple[dict[str, Any], np.ndarray]]:
     """Jacobian rows of every candidate measurement not already made, that can be made."""
+    found = _candidates(problem, measured_keys)
+    if found is None:
+        return []
+    records, cand = found
+    visible = cand.visible(x)
+    J = cand.jacobian(x)
+    return [
+        ({key: val for key, val in record.items() if key != "sigma"}, J[rows])
+        for record, rows, seen in zip(records, cand.measurement_rows, visible)
+        if seen
+    ]
+
+
+def _candidate_rows_by_blocks(
+    problem: Problem, structure: Structure, x: np.ndarray, measured_keys: set
+) -> list[tuple[dict[str, Any], np.ndarray, int]]:
+    """:func:`_candidate_rows` compressed (issue 15): each candidate's rows over its configuration's
+    block and the shared unknowns (nb + ks columns, not n), and that block."""
+    found = _candidates(problem, measured_keys)
+    if found is None:
+        return []
+    records, cand = found
+    own = structure_of(cand)  # the same unknowns: the same blocks, the candidates' rows their own
+    if own is None or not np.array_equal(own.blocks, structure.blocks):
+        return []
+    visible = cand.visible(x)
+    _, Jc = compressed_jacobian(cand.residual_function, x, own, (np.nan_to_num(cand.y), cand.params.known))
+    return [
+        ({key: val for key, val in record.items() if key != "sigma"}, Jc[rows], int(own.row_block[rows.start]))
+        for record, rows, seen in zip(records, cand.measurement_rows, visible)
+        if seen
+    ]
+
+
+def _candidates(problem: Problem, measured_keys: set) -> tuple[list[dict[str, Any]], Problem] | None:
+    """The records of the candidate measurements not already made (at most 5,000) and the problem
+    they form (None when there are none)."""
     model = problem.model
     kinds = list(model.measures) or problem.measurements.kinds
     records = []
@@ -289,19 +338,14 @@ def _candidate_rows(problem: Problem, x: np.ndarray, measured_keys: set) -> list
             if key not in measured_keys:
                 records.append({**rec, "sigma": mm.default_sigma})
     if not records:
-        return []
+        return None
     records = records[:5000]
-    plan = measurements_from_records(
-        records, model, known=problem.measurements.known, configurations=problem.measurements.configurations
-    )
-    cand = Problem(model, plan, problem.unknown_names, priors=False)
-    visible = cand.visible(x)
-    J = cand.jacobian(x)
-    return [
-        ({key: val for key, val in record.items() if key != "sigma"}, J[rows])
-        for record, rows, seen in zip(records, cand.measurement_rows, visible)
-        if seen
-    ]
+    # Every configuration of the problem, in its order (those without a candidate too: the
+    # unknowns name them), so that the candidates' problem has the same unknowns at the same places.
+    given = problem.measurements.configurations
+    configurations = {c: given.get(c, {}) for c in problem.params.configurations}
+    plan = measurements_from_records(records, model, known=problem.measurements.known, configurations=configurations)
+    return records, Problem(model, plan, problem.unknown_names, priors=False)
 
 
 def _measured_keys(ms: MeasurementSet) -> set:
@@ -312,22 +356,32 @@ def _measured_keys(ms: MeasurementSet) -> set:
     return keys
 
 
+_STRUCTURES: weakref.WeakKeyDictionary[Problem, Structure | None] = weakref.WeakKeyDictionary()
+
+
+def _structure_of(problem: Problem) -> Structure | None:
+    """:func:`mbcal.structured.structure_of`, once per problem (the solve and the point
+    uncertainties both read it: ~0.2 ms each for 13 views, issue 16)."""
+    if problem not in _STRUCTURES:
+        _STRUCTURES[problem] = structure_of(problem)
+    return _STRUCTURES[problem]
+
+
 def _structure(problem: Problem, config: SolverConfig) -> Structure | None:
     """Issue 15: the block structure to solve by the Schur complement, or None for the dense solver.
 
     The rule (``SolverConfig.structure``): ``dense`` never; ``structured`` always (an error when
-    the problem has no block structure or has hard bounds); ``auto`` when the problem has no hard
-    bounds and :func:`mbcal.structured.pays`: at least 8 configurations with unknowns of their
-    own (board poses), which outnumber the shared ones.
+    the problem has no block structure); ``auto`` when :func:`mbcal.structured.pays`: at least 8
+    configurations with unknowns of their own (board poses), which outnumber the shared ones.
+    Hard bounds do not matter: both solvers take them.
     """
     if config.structure == "dense":
         return None
-    structure = structure_of(problem)
-    bounded = problem.params.bounds is not None
-    if config.structure == "structured" and (structure is None or bounded):
-        why = "has hard bounds" if bounded else "has no configurations with unknowns of their own"
+    structure = _structure_of(problem)
+    if config.structure == "structured" and structure is None:
+        why = "has no configurations with unknowns of their own"
         raise SolverError(f"the structured solver cannot solve this problem: it {why}", hint="use structure='dense'")
-    if structure is None or bounded or not (config.structure == "structured" or pays(structure)):
+    if structure is None or not (config.structure == "structured" or pays(structure)):
         return None
     return structure
 
@@ -394,6 +448,7 @@ def calibrate(
             config=config,
             local=problem.local,
             cache_key=problem.fingerprint(),  # issue 16: a second process does not trace it again
+            bounds=params.bounds,  # hard limits, projected steps by blocks (None: none)
         )
     else:
         solved = least_squares(
@@ -422,15 +477,18 @@ def calibrate(
         assert structure is not None
         return _calibrate_by_blocks(problem, structure, solved, x, x_init, chi2, o, t0, say)
     # once: the observability analysis and the fit verdict share it (structured: from nb + ks tangents)
+    dense: Callable[[], np.ndarray]  # the m × n Jacobian (structured: scattered only when asked for)
     if structure is None:
         r, J = problem.residual_and_jacobian(x)
+        dense = lambda: J  # noqa: E731
     else:
-        r, J, Jc = dense_jacobian(problem.residual_function, x, structure, args, cache_key=problem.fingerprint())
-    Jm, Jp = J[: problem.size], J[problem.size :]
+        r, Jc = compressed_jacobian(problem.residual_function, x, structure, args, cache_key=problem.fingerprint())
+        dense = functools.cache(lambda: expand_jacobian(Jc, structure))
+    Jp = dense()[problem.size :] if structure is None else expand_jacobian(Jc[problem.size :], structure, problem.size)
     rows = _residual_rows(problem, x, r)
     obs = analyze(
         # structured: an n × n R with RᵀR = JmᵀJm (same spectrum), not the m × n Jacobian (issue 15)
-        Jm
+        J[: problem.size]
         if structure is None
         else square_root_information(Jc[: problem.size], structure.row_block[: problem.size], structure),
         Jp,
@@ -445,12 +503,12 @@ def calibrate(
     if suggest and not obs.observable:
         say("ranking candidate measurements")
         candidates = _candidate_rows(problem, x, _measured_keys(measurements))
-        obs.suggestions = rank_candidates(obs, Jm, Jp, candidates)
+        obs.suggestions = rank_candidates(obs, dense()[: problem.size], Jp, candidates)
     say("judging the fit")
     verdict = assess_fit(
         problem,
         r,
-        J,
+        dense,  # called only when the fit is not consistent (issue 16)
         obs,
         loss=str(config.loss),
         config=o.fit,
@@ -466,14 +524,21 @@ def _result(
     x: np.ndarray,
     x_init: np.ndarray,
     obs: Observability,
-    rows: list,
+    rows: ResidualRows,
     verdict: Any,
     o: CalibrateOptions,
     config: SolverConfig,
     t0: float,
 ) -> CalibrationResult:
-    """The result of a calibration, dense or from the blocks: point uncertainties, visibility, timing."""
-    pts = _point_uncertainties(problem, x, obs.covariance, o.points, o.camera)
+    """The result of a calibration, dense or from the blocks: point uncertainties (computed when
+    first read; the names asked for are checked now), visibility, timing."""
+    model = problem.model
+    for p in o.points or ():
+        model.resolve("point", p)
+    if o.camera is not None:
+        model.resolve("camera", o.camera)
+    x_at, covariance = np.array(x), obs.covariance
+    pts = DeferredPoints(lambda: _point_uncertainties(problem, x_at, covariance, o.points, o.camera))
     visible = problem.visible(x)
     not_visible = [m.id for m, v in zip(problem.measurements.measurements, visible) if not v]
     return CalibrationResult(
@@ -506,8 +571,8 @@ def _calibrate_by_blocks(
 ) -> CalibrationResult:
     """The report of a structured solve from its blocks (issue 15): the same observability analysis,
     fit verdict and point uncertainties as the dense path, from the compressed Jacobian (m × (nb + ks))
-    — nothing of size n × n or m × n.  Candidate measurements are not ranked here (that needs the
-    dense Jacobian of every candidate)."""
+    — nothing of size n × n or m × n.  Candidate measurements are ranked from their compressed
+    Jacobians (:func:`mbcal.structured.rank_candidates_structured`: the dense ranking's scores)."""
     params = problem.params
     r, Jc = compressed_jacobian(
         problem.residual_function, x, structure, (problem.y, params.known), cache_key=problem.fingerprint()
@@ -522,7 +587,15 @@ def _calibrate_by_blocks(
         scales=unknown_scales(params),
         config=o.observability,
         chi2_scale=chi2,
+        active=solved.active_best,  # unknowns held at an active hard bound
     )
+    if o.suggest and not obs.observable:
+        say("ranking candidate measurements")
+        candidates = _candidate_rows_by_blocks(problem, structure, x, _measured_keys(problem.measurements))
+        obs.suggestions = rank_candidates_structured(obs, structure, Jc, candidates)
+    held = solved.active_best != 0
+    if held.any():  # held unknowns are not refitted (as the dense verdict zeroes their columns)
+        Jc = held_columns(structure, Jc, held)
     say("judging the fit")
     config = o.config or SolverConfig()
     verdict = assess_fit(

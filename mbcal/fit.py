@@ -523,7 +523,7 @@ def assess_plan(
 def assess_fit(
     problem: Problem,
     r: np.ndarray,
-    J: np.ndarray | None,
+    J: np.ndarray | Callable[[], np.ndarray] | None,
     obs: Observability,
     *,
     loss: str = "linear",
@@ -539,7 +539,8 @@ def assess_fit(
     ----------
     problem : Problem
     r, J : arrays
-        The whitened residual (measurement rows, then prior rows) and its Jacobian at the estimate.
+        The whitened residual (measurement rows, then prior rows) and its Jacobian at the estimate
+        (or a function returning it: called only when the fit is not consistent).
     obs : Observability
         The analysis at the estimate (its rank, scales and covariance).
     loss : str
@@ -554,14 +555,6 @@ def assess_fit(
     config = config or FitConfig()
     alpha = config.threshold
     r = np.asarray(r, dtype=float)
-    if linearize is None:
-        J = np.array(J, dtype=float)
-        held = [obs.names.index(name) for name in getattr(obs, "active_bounds", {}) if name in obs.names]
-        J[:, held] = 0.0  # unknowns held at an active hard bound are not refitted
-    ms = problem.measurements.measurements
-    ids = [m.id for m in ms]
-    blocks = [np.arange(s.start, s.stop) for s in problem.measurement_rows]
-    prior_rows = np.arange(problem.size, problem.n_residuals)
     S = float(r @ r)
     m_rows = problem.n_residuals
     dof = max(m_rows - int(obs.rank_with_priors), 0)
@@ -571,8 +564,17 @@ def assess_fit(
         return FitVerdict(S, 0, None, consistent=True, **common)  # type: ignore[arg-type]
     p = float(stats.chi2.sf(S, dof))
     robust = str(loss) != "linear"
-    if p >= alpha and not robust:
+    if p >= alpha and not robust:  # consistent: nothing to look for (and nothing below computed, issue 16)
         return FitVerdict(S, dof, p, consistent=True, **common)  # type: ignore[arg-type]
+    Jd: np.ndarray | None = None
+    if linearize is None:
+        Jd = np.array(J() if callable(J) else J, dtype=float)
+        held = [obs.names.index(name) for name in getattr(obs, "active_bounds", {}) if name in obs.names]
+        Jd[:, held] = 0.0  # unknowns held at an active hard bound are not refitted
+    ms = problem.measurements.measurements
+    ids = [m.id for m in ms]
+    blocks = [np.arange(s.start, s.stop) for s in problem.measurement_rows]
+    prior_rows = np.arange(problem.size, problem.n_residuals)
 
     def rows_of(members) -> np.ndarray:
         parts = [blocks[i] for i in members]
@@ -582,8 +584,8 @@ def assess_fit(
         rows = np.concatenate([rows_of(np.nonzero(kept)[0]), prior_rows])
         if linearize is not None:
             return linearize(rows)
-        assert J is not None
-        return _Linear(r, J, rows)
+        assert Jd is not None
+        return _Linear(r, Jd, rows)
 
     n_meas = len(ms)
     normalized = np.array([float(np.sqrt(np.sum(r[b] ** 2))) for b in blocks])

@@ -17,9 +17,9 @@ correlations) — and :attr:`Observability.active_bounds` names it.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar, overload
 
 import numpy as np
 
@@ -32,6 +32,9 @@ __all__ = [
     "analyze",
     "unknown_scales",
     "PointUncertainty",
+    "PointUncertainties",
+    "PointLabels",
+    "MadeWhenRead",
     "point_uncertainty",
     "point_uncertainties",
 ]
@@ -377,8 +380,13 @@ def _held_at_bounds(
         chi2_scale=chi2_scale,
         null_space=null,
         n_values=inner.n_values,
-        active_bounds={name: ("lower" if a < 0 else "upper") for name, a in zip(names, active) if a != 0},
+        active_bounds=active_sides(names, active),
     )
+
+
+def active_sides(names: Sequence[str], active: np.ndarray) -> dict[str, str]:
+    """{unknown: "lower" | "upper"} of the unknowns held at an active bound (``active``: −1, 0, +1)."""
+    return {name: ("lower" if a < 0 else "upper") for name, a in zip(names, np.asarray(active).tolist()) if a != 0}
 
 
 def rank_candidates(
@@ -398,30 +406,65 @@ def rank_candidates(
         S = np.where(obs.fixed, 0.0, S)  # held at a bound: no measurement can help
     Js = np.asarray(J_measurements) * S
     P = np.asarray(J_priors) * S if J_priors is not None and len(J_priors) else np.zeros((0, len(S)))
-    info = Js.T @ Js + P.T @ P
+    # Rows with the information Jsᵀ Js + PᵀP (n of them: an R factor), kept as rows so that σ comes
+    # from singular values, not from eigenvalues of the squared matrix (those lost ~1e-6 of σ at a
+    # condition number of 1e5, more than most candidates change it).
+    info_rows: Any = np.linalg.qr(np.vstack([Js, P]), mode="r")  # (numpy's stubs type it loosely)
     null = obs.null_space if obs.null_space is not None else np.zeros((len(S), 0))
-    base_worst = _worst_sigma(info, null)
-    scored = []
+    seen = []
     for record, rows in candidates:
         R = np.atleast_2d(rows) * S
-        norm = np.linalg.norm(R)
-        if not np.isfinite(norm) or norm == 0:
-            continue
-        gain = 0
-        if null.shape[1]:
-            sv = np.linalg.svd(R @ null, compute_uv=False)
-            gain = int(np.sum(sv > 1e-6 * norm))
-        new_null = null
-        if gain:
-            # The directions of the null space the candidate does not see stay unobservable.
-            _, sv2, vt = np.linalg.svd(R @ null)
-            seen = np.zeros(null.shape[1], dtype=bool)
-            seen[: len(sv2)] = sv2 > 1e-6 * norm
-            new_null = null @ vt.T[:, ~seen]
-        worst = _worst_sigma(info + R.T @ R, new_null)
-        reduction = 0.0 if not np.isfinite(base_worst) or base_worst == 0 else max(0.0, 1.0 - worst / base_worst)
-        scored.append((gain, reduction, record))
-    scored.sort(key=lambda t: (-t[0], -t[1]))
+        found = null_seen(R, R @ null, null)
+        if found is not None:
+            seen.append((*found, record, R))
+    return best_suggestions(
+        seen, _worst_sigma(info_rows, null), lambda R, new_null: _worst_sigma(np.vstack([info_rows, R]), new_null), top
+    )
+
+
+def null_seen(R: np.ndarray, R_null: np.ndarray, null: np.ndarray) -> tuple[int, np.ndarray] | None:
+    """What a candidate's scaled rows ``R`` see of the null space ``null`` (n, k) (``R_null``: R
+    times it): the rank they add and the null directions they leave unobservable; None when R
+    has no finite nonzero entry.  (The scoring of :func:`rank_candidates`, dense or by blocks.)"""
+    norm = np.linalg.norm(R)
+    if not np.isfinite(norm) or norm == 0:
+        return None
+    gain = 0
+    if null.shape[1]:
+        sv = np.linalg.svd(R_null, compute_uv=False)
+        gain = int(np.sum(sv > 1e-6 * norm))
+    new_null = null
+    if gain:
+        # The directions of the null space the candidate does not see stay unobservable.
+        _, sv2, vt = np.linalg.svd(R_null)
+        seen = np.zeros(null.shape[1], dtype=bool)
+        seen[: len(sv2)] = sv2 > 1e-6 * norm
+        new_null = null @ vt.T[:, ~seen]
+    return gain, new_null
+
+
+def best_suggestions(
+    seen: Sequence[tuple[int, np.ndarray, dict[str, Any], Any]],
+    base_worst: float,
+    worst: Callable[[Any, np.ndarray], float],
+    top: int,
+) -> list[Suggestion]:
+    """The ``top`` candidates by rank gain, then by the relative reduction of the largest scaled σ
+    (stable: ties keep the candidates' order), as suggestions with their text.  ``seen``: (rank
+    gain, null directions left, record, rows) of each candidate (:func:`null_seen`); ``worst``:
+    rows, null directions left → the largest σ with the candidate, asked only of candidates whose
+    gain can reach the top (a candidate with less gain than the top-th largest cannot)."""
+    if not seen:
+        return []
+    gains = sorted((gain for gain, *_ in seen), reverse=True)
+    needed = gains[min(top, len(gains)) - 1]
+    scored = []
+    for gain, new_null, record, rows in seen:
+        if gain >= needed:
+            w = worst(rows, new_null)
+            reduction = 0.0 if not np.isfinite(base_worst) or base_worst == 0 else max(0.0, 1.0 - w / base_worst)
+            scored.append((gain, reduction, record))
+    scored = sorted(scored, key=lambda t: (-t[0], -t[1]))
     out = []
     for gain, reduction, record in scored[:top]:
         what = ", ".join(f"{k} {v}" for k, v in record.items() if k not in ("kind", "sigma"))
@@ -434,19 +477,20 @@ def rank_candidates(
     return out
 
 
-def _worst_sigma(info: np.ndarray, null: np.ndarray) -> float:
-    """The largest σ (scaled) over the observable subspace of an information matrix."""
-    n = info.shape[0]
+def _worst_sigma(rows: np.ndarray, null: np.ndarray) -> float:
+    """The largest σ (scaled) over the observable subspace of the information matrix rowsᵀ rows:
+    1 / the smallest singular value of the rows over the complement of ``null`` that exceeds
+    1e-6 of the largest (an eigenvalue of the information above 1e-12 of the largest)."""
+    n = rows.shape[1]
     if null.shape[1]:
-        # Project out the unobservable directions.
-        Q, _ = np.linalg.qr(null)
-        Pp = np.eye(n) - Q @ Q.T
-        info = Pp @ info @ Pp
-    w = np.linalg.eigvalsh(info)
-    positive = w[w > 1e-12 * max(w.max(), 1e-300)]
-    if positive.size == 0:
+        # Only the directions outside the unobservable ones: a basis of their complement.
+        Q, _ = np.linalg.qr(null, mode="complete")
+        rows = rows @ Q[:, null.shape[1] :]
+    sv = np.linalg.svd(rows, compute_uv=False) if rows.size else np.zeros(0)
+    positive = sv[sv > 1e-6 * max(sv.max(initial=0.0), 1e-300)]
+    if positive.size == 0 or n == 0:
         return float("inf")
-    return float(1.0 / np.sqrt(positive.min()))
+    return float(1.0 / positive.min())
 
 
 @dataclass(frozen=True, slots=True)  # slots: a large calibration reports 100,000 of them (issue 15)
@@ -477,6 +521,87 @@ class PointUncertainty:
         }
 
 
+T = TypeVar("T")
+
+
+class MadeWhenRead(Sequence[T]):
+    """A read-only list whose items are made from arrays when read (:meth:`_make`), for the
+    many-row parts of a report (issues 15, 16): subclasses give ``__len__`` and ``_make``."""
+
+    __slots__ = ()
+
+    def _make(self, k: int) -> T:
+        raise NotImplementedError
+
+    @overload
+    def __getitem__(self, i: int) -> T: ...
+
+    @overload
+    def __getitem__(self, i: slice) -> list[T]: ...
+
+    def __getitem__(self, i: int | slice) -> T | list[T]:
+        if isinstance(i, slice):
+            return [self._make(k) for k in range(*i.indices(len(self)))]
+        return self._make(range(len(self))[i])  # negative indices; IndexError past the end
+
+    def __iter__(self) -> Iterator[T]:
+        return (self._make(k) for k in range(len(self)))
+
+
+class PointLabels(MadeWhenRead[tuple[str, str, "str | None"]]):
+    """(point, configuration, camera) names of many points from index arrays (a camera index < 0:
+    none), each tuple made when read (issue 16)."""
+
+    __slots__ = ("_names", "_points", "_configs", "_config_names", "_cameras", "_camera_names")
+
+    def __init__(self, point_names, points, config_names, configs, camera_names, cameras):
+        self._names, self._points = point_names, points
+        self._config_names, self._configs = config_names, configs
+        self._camera_names, self._cameras = camera_names, cameras
+
+    def __len__(self) -> int:
+        return len(self._points)
+
+    def _make(self, k: int) -> tuple[str, str, str | None]:
+        cam = int(self._cameras[k])
+        return (
+            self._names[int(self._points[k])],
+            self._config_names[int(self._configs[k])],
+            self._camera_names[cam] if cam >= 0 else None,
+        )
+
+
+class PointUncertainties(MadeWhenRead[PointUncertainty]):
+    """Many points' uncertainties as arrays: a list of :class:`PointUncertainty` to its readers,
+    each made when it is read (issue 16: 702 objects were ~1.5 ms of a 13-view calibration;
+    issue 15: 108,000 at 2,000 views).  ``positions`` (k, 3), ``covariances`` (k, 3, 3),
+    ``parallel`` and ``perpendicular`` (k,) are the arrays."""
+
+    __slots__ = ("items", "positions", "covariances", "parallel", "perpendicular")
+
+    def __init__(self, items, positions, covariances, parallel, perpendicular):
+        self.items: Sequence[tuple[str, str, str | None]] = items
+        self.positions: np.ndarray = positions
+        self.covariances: np.ndarray = covariances
+        self.parallel: np.ndarray = parallel
+        self.perpendicular: np.ndarray = perpendicular
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def _make(self, k: int) -> PointUncertainty:
+        name, cfg, cam = self.items[k]
+        return PointUncertainty(
+            name,
+            cfg,
+            cam,
+            self.positions[k],
+            self.covariances[k],
+            float(self.parallel[k]),
+            float(self.perpendicular[k]),
+        )
+
+
 def _finite_or_none(v: float) -> float | None:
     return float(v) if np.isfinite(v) else None
 
@@ -494,6 +619,26 @@ def split_line_of_sight(cov: np.ndarray, position: np.ndarray, eye: np.ndarray |
     P = np.eye(3) - np.outer(u, u)
     perp = float(np.sqrt(max(np.linalg.eigvalsh(P @ cov @ P).max(), 0.0)))
     return par, perp
+
+
+def _largest_across(u: np.ndarray, C: np.ndarray) -> np.ndarray:
+    """(k,) the largest eigenvalue of each covariance C (k, 3, 3) restricted to the plane across
+    the unit vector u (k, 3): the 2 × 2 matrix B = EᵀCE in an orthonormal basis E of that plane,
+    its larger eigenvalue (b₀₀ + b₁₁)/2 + hypot((b₀₀ − b₁₁)/2, b₀₁) in closed form (issue 16: the
+    batched 3 × 3 eigvalsh of the projected matrix was 0.4 ms for 702 points)."""
+    x, y, z = u[:, 0], u[:, 1], u[:, 2]
+    # the first axis: u × (the coordinate axis least aligned with u), normalised
+    j = np.argmin(np.abs(u), axis=1)
+    zero = np.zeros_like(x)
+    e1 = np.where(
+        (j == 0)[:, None],
+        np.stack([zero, z, -y], axis=1),
+        np.where((j == 1)[:, None], np.stack([-z, zero, x], axis=1), np.stack([y, -x, zero], axis=1)),
+    )
+    e1 /= np.sqrt(np.sum(e1 * e1, axis=1))[:, None]
+    E = np.stack([e1, np.cross(u, e1)], axis=2)  # (k, 3, 2)
+    B = np.swapaxes(E, 1, 2) @ C @ E
+    return 0.5 * (B[:, 0, 0] + B[:, 1, 1]) + np.hypot(0.5 * (B[:, 0, 0] - B[:, 1, 1]), B[:, 0, 1])
 
 
 def point_uncertainty(
@@ -538,7 +683,7 @@ def point_uncertainties(
     eyes: Sequence[np.ndarray | None] | np.ndarray,
     *,
     covariances: np.ndarray | None = None,
-) -> list[PointUncertainty]:
+) -> Sequence[PointUncertainty]:
     """:func:`point_uncertainty` for many points at once: ``points`` (name, configuration, camera),
     positions (k, 3), Jacobians (k, 3, n), eyes (k entries, None: no line of sight; or a (k, 3)
     array with NaN rows for none).
@@ -549,7 +694,7 @@ def point_uncertainties(
     per pattern, e.g. per view of a target), and the line-of-sight split is batched too."""
     k = len(points)
     if k == 0:
-        return []
+        return PointUncertainties([], np.empty((0, 3)), np.empty((0, 3, 3)), np.empty(0), np.empty(0))
     P = np.asarray(positions, dtype=float)
     covs = np.empty((k, 3, 3)) if covariances is None else np.asarray(covariances, dtype=float)
     if covariances is None:
@@ -585,11 +730,7 @@ def point_uncertainties(
         u = P[sight] - eye_rows[sight]
         u = u / np.linalg.norm(u, axis=1, keepdims=True)
         C = covs[sight]
-        par[sight] = np.sqrt(np.maximum(np.einsum("ki,kij,kj->k", u, C, u), 0.0))
-        Pr = np.eye(3) - u[:, :, None] * u[:, None, :]
-        perp[sight] = np.sqrt(np.maximum(np.linalg.eigvalsh(Pr @ C @ Pr).max(axis=1), 0.0))
-    par_list, perp_list = par.tolist(), perp.tolist()
-    return [
-        PointUncertainty(name, cfg, cam, P[i], covs[i], par_list[i], perp_list[i])
-        for i, (name, cfg, cam) in enumerate(points)
-    ]
+        along = np.einsum("ki,kij,kj->k", u, C, u)
+        par[sight] = np.sqrt(np.maximum(along, 0.0))
+        perp[sight] = np.sqrt(np.maximum(_largest_across(u, C), 0.0))
+    return PointUncertainties(points, P, covs, par, perp)

@@ -157,6 +157,14 @@ class ParameterSet:
             key=lambda u: (u.configuration is not None, self._config_index.get(u.configuration or "", 0), u.param.index)
         )
         self.unknowns: tuple[Unknown, ...] = tuple(unknowns)
+        # read per call by the solver's set-up (issue 16): once here, copies handed out
+        self._names = [u.name for u in unknowns]
+        self._index = {name: j for j, name in enumerate(self._names)}
+        self._x0_at = (self._slot_rows(), np.array([u.param.index for u in unknowns], dtype=np.int64))
+        self._lower = np.array([np.nan if u.lower is None else u.lower for u in unknowns], dtype=float)
+        self._upper = np.array([np.nan if u.upper is None else u.upper for u in unknowns], dtype=float)
+        self._limits = np.array([u.limits for u in unknowns], dtype=float).reshape(-1, 2)
+        self._bounded = any(u.param.limited for u in unknowns)
 
         rows, cols, src = [], [], []
         for j, u in enumerate(self.unknowns):
@@ -187,7 +195,7 @@ class ParameterSet:
     @property
     def names(self) -> list[str]:
         """Names of the unknowns, in the order of x."""
-        return [u.name for u in self.unknowns]
+        return list(self._names)
 
     @property
     def size(self) -> int:
@@ -200,7 +208,7 @@ class ParameterSet:
     @property
     def x0(self) -> np.ndarray:
         """The unknowns' initial values: nominal (or given) values."""
-        return self.known[self._slot_rows(), [u.param.index for u in self.unknowns]].astype(float)
+        return self.known[self._x0_at].astype(float)
 
     def _slot_rows(self) -> list[int]:
         return [self._config_index[u.configuration] if u.configuration is not None else 0 for u in self.unknowns]
@@ -209,27 +217,27 @@ class ParameterSet:
     def lower(self) -> np.ndarray:
         """Lower ends of the search ranges (nan where none is declared); the hard limits are
         :attr:`limit_lower` and :attr:`limit_upper`."""
-        return np.array([np.nan if u.lower is None else u.lower for u in self.unknowns], dtype=float)
+        return self._lower.copy()
 
     @property
     def upper(self) -> np.ndarray:
         """Upper ends of the search ranges (nan where none is declared)."""
-        return np.array([np.nan if u.upper is None else u.upper for u in self.unknowns], dtype=float)
+        return self._upper.copy()
 
     @property
     def limit_lower(self) -> np.ndarray:
         """Hard lower limits of the unknowns (−inf where none): the solver never goes below them."""
-        return np.array([u.limits[0] for u in self.unknowns], dtype=float)
+        return self._limits[:, 0].copy()
 
     @property
     def limit_upper(self) -> np.ndarray:
         """Hard upper limits of the unknowns (inf where none)."""
-        return np.array([u.limits[1] for u in self.unknowns], dtype=float)
+        return self._limits[:, 1].copy()
 
     @property
     def bounded(self) -> bool:
         """Whether any unknown has a hard limit."""
-        return any(u.param.limited for u in self.unknowns)
+        return self._bounded
 
     @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray] | None:
@@ -291,7 +299,7 @@ class ParameterSet:
     def from_dict(self, values: Mapping[str, float], default: Array | None = None) -> np.ndarray:
         """x from ``{unknown name: value}``; missing entries come from ``default`` (or :attr:`x0`)."""
         x = np.array(self.x0 if default is None else default, dtype=float)
-        index = {u.name: j for j, u in enumerate(self.unknowns)}
+        index = self._index
         for name, value in values.items():
             if name not in index:
                 raise ParameterError(f"'{name}' is not an unknown", hint=suggest(name, index))

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from mbcal._jax import jax, jit, jnp
+from mbcal._jax import jax, jit, jnp, release_memory
 from mbcal.cache import PROGRAMS, Hasher, code_fingerprint, enable_compilation_cache, exported
 from mbcal.errors import SolverError
 from mbcal.geometry import transforms as geo
@@ -147,6 +147,7 @@ class Problem:
         self._last_values: tuple[Any, tuple[np.ndarray, list[np.ndarray], np.ndarray]] | None = None
         self.local = programs.local
         self._fun = programs.fun
+        release_memory(64 * self.size)  # the temporaries of a large set's groups and row tables
 
     def _orientations(self) -> list[tuple[RpyTriple, np.ndarray]]:
         """The roll-pitch-yaw triples stepped as rotations, each with the positions (k, 3) of its

@@ -412,6 +412,46 @@ def step_status(config: SolverConfig, status: Array, finite_step: Array, delta: 
     return jnp.where((status == 0) & (it >= config.max_iterations), Status.MAX_ITERATIONS, status)
 
 
+def active_set(x: Array, g: Array, lower: Array, upper: Array) -> Array:
+    """The unknowns a projected step holds: on a bound, with the gradient g of S pushing them
+    outwards (S decreases along −g).  The one rule of the dense and the structured
+    (:mod:`mbcal.structured`) loops with hard bounds."""
+    return ((x <= lower) & (g > 0)) | ((x >= upper) & (g < 0))
+
+
+def projected(x: Array, delta: Array, lower: Array, upper: Array) -> Array:
+    """The step actually taken after the projection onto the bounds: clip(x + δ) − x, written as
+    δ + (clip(x + δ) − (x + δ)) (local coordinates are never bounded)."""
+    moved = x + delta
+    return delta + (jnp.clip(moved, lower, upper) - moved)
+
+
+def active_at_end(x: Array, g: Array, column_norm: Array, residual_norm: Array, lower, upper, gtol) -> Array:
+    """−1 / +1 / 0 per unknown: on its lower / upper bound with a gradient that pushes it outwards
+    by more than ``gtol`` (scale-free, as the gradient test: an unknown no measurement sees stays
+    free, σ = ∞), else 0.  ``column_norm``: ‖J_j‖; ``residual_norm``: ‖r‖ (weighted)."""
+    pushed = jnp.abs(g) > gtol * (column_norm * residual_norm)
+    lower_active = (x <= lower) & (g > 0) & pushed
+    upper_active = (x >= upper) & (g < 0) & pushed
+    return jnp.where(lower_active, -1, jnp.where(upper_active, 1, 0)).astype(jnp.int32)
+
+
+def hard_limits(
+    bounds: tuple[Array, Array] | None, x0: np.ndarray
+) -> tuple[tuple[np.ndarray, np.ndarray] | None, np.ndarray]:
+    """Checked hard bounds for starts ``x0`` (R, n) and the starts moved inside them: (None, x0)
+    when there are none or every side is infinite (then the unbounded program runs)."""
+    if bounds is None:
+        return None, x0
+    lower = np.broadcast_to(np.asarray(bounds[0], dtype=float), x0.shape[1:]).copy()
+    upper = np.broadcast_to(np.asarray(bounds[1], dtype=float), x0.shape[1:]).copy()
+    if np.any(np.isnan(lower)) or np.any(np.isnan(upper)) or np.any(lower > upper):
+        raise SolverError("bounds must be numbers (±inf for none) with lower ≤ upper")
+    if not (np.any(np.isfinite(lower)) or np.any(np.isfinite(upper))):
+        return None, x0
+    return (lower, upper), np.clip(x0, lower, upper)
+
+
 class _LMState(NamedTuple):
     """The Marquardt loop's carry (a pytree: JAX traces its fields)."""
 
@@ -491,15 +531,14 @@ def _lm_batch(
 
     weighted = functools.partial(robust_system, loss, scale)
 
-    def active_set(x, g):
-        """Unknowns on a bound that the gradient pushes outwards (S decreases along −g)."""
-        lower, upper = bounds
-        return ((x <= lower) & (g > 0)) | ((x >= upper) & (g < 0))
+    def held(x, g):
+        assert bounds is not None
+        return active_set(x, g, bounds[0], bounds[1])
 
     def gradient_small(rw, Jw, x):
         g = Jw.T @ rw
         if bounds is not None:
-            g = jnp.where(active_set(x, g), 0.0, g)  # the projected gradient
+            g = jnp.where(held(x, g), 0.0, g)  # the projected gradient
         col = jnp.sqrt(jnp.sum(Jw * Jw, axis=0))
         rn = jnp.sqrt(jnp.sum(rw * rw))
         denom = col * rn
@@ -546,7 +585,7 @@ def _lm_batch(
             delta = _solve_step(A + lam * jnp.diag(Dc), -g)
         else:
             # Active unknowns are held: their rows and columns of the damped system become the identity.
-            free = ~active_set(x, g)
+            free = ~held(x, g)
             both = free[:, None] & free[None, :]
             M = jnp.where(both, A + lam * jnp.diag(Dc), 0.0) + jnp.diag(jnp.where(free, 0.0, 1.0))
             delta = _solve_step(M, jnp.where(free, -g, 0.0))
@@ -555,9 +594,7 @@ def _lm_batch(
         if bounds is None:
             taken = delta
         else:
-            # The step actually taken after the projection (local coordinates are never bounded).
-            moved = x + delta
-            taken = delta + (jnp.clip(moved, bounds[0], bounds[1]) - moved)
+            taken = projected(x, delta, bounds[0], bounds[1])  # the step actually taken
         predicted = jnp.where(finite_step, -(2.0 * g @ taken + taken @ (A @ taken)), -1.0)
         status = step_status(config, status, finite_step, delta, x, lam, it)
         # A step that cannot be computed is a rejection: try again with a larger λ.
@@ -567,16 +604,11 @@ def _lm_batch(
         x_try = jnp.where(finite_step, x_next, x)
         return _LMState(x, r, rw, Jw, cost, x_try, predicted, lam, nu, D, it, status.astype(jnp.int32))
 
-    def active_at_end(final: _LMState) -> Array:
-        # Active at the end: on a bound, with a gradient that pushes outwards by more than gtol
-        # (scale-free, as the gradient test): an unknown no measurement sees stays free (σ = ∞).
+    def final_active(final: _LMState) -> Array:
         assert bounds is not None
-        g = final.Jw.T @ final.rw
-        denom = jnp.sqrt(jnp.sum(final.Jw * final.Jw, axis=0)) * jnp.sqrt(jnp.sum(final.rw * final.rw))
-        pushed = jnp.abs(g) > config.gtol * denom
-        lower_active = (final.x <= bounds[0]) & (g > 0) & pushed
-        upper_active = (final.x >= bounds[1]) & (g < 0) & pushed
-        return jnp.where(lower_active, -1, jnp.where(upper_active, 1, 0)).astype(jnp.int32)
+        col = jnp.sqrt(jnp.sum(final.Jw * final.Jw, axis=0))
+        rn = jnp.sqrt(jnp.sum(final.rw * final.rw))
+        return active_at_end(final.x, final.Jw.T @ final.rw, col, rn, bounds[0], bounds[1], config.gtol)
 
     def finish(final: _LMState, x0: Array) -> tuple:
         # The running cost accumulates exact changes; report the cost of the final residual itself.
@@ -585,7 +617,7 @@ def _lm_batch(
             final = final._replace(x=local.represent(final.x, x0))
         if bounds is None:
             return final.x, cost, final.status, final.it
-        return final.x, cost, final.status, final.it, active_at_end(final)
+        return final.x, cost, final.status, final.it, final_active(final)
 
     final = restart_loop(cond, body, jax.vmap(start)(x0s))
     return jax.vmap(finish)(final, x0s)
@@ -686,15 +718,7 @@ def least_squares(
     x0 = np.atleast_2d(np.asarray(x0, dtype=float))
     args = tuple(to_device(a) for a in args)  # not jnp.asarray: it compiles a program per shape
     local = local if config.manifold else None
-    limits: tuple[np.ndarray, np.ndarray] | None = None
-    if bounds is not None:
-        lower = np.broadcast_to(np.asarray(bounds[0], dtype=float), x0.shape[1:]).copy()
-        upper = np.broadcast_to(np.asarray(bounds[1], dtype=float), x0.shape[1:]).copy()
-        if np.any(np.isnan(lower)) or np.any(np.isnan(upper)) or np.any(lower > upper):
-            raise SolverError("bounds must be numbers (±inf for none) with lower ≤ upper")
-        if np.any(np.isfinite(lower)) or np.any(np.isfinite(upper)):
-            limits = (lower, upper)
-            x0 = np.clip(x0, lower, upper)
+    limits, x0 = hard_limits(bounds, x0)
     program = _compiled(fun, config, size, limits is not None, local if local is None else _Identity(local))
     example: tuple[Any, ...] = (to_device(x0), args)
     if limits is not None:
@@ -727,12 +751,11 @@ def random_starts(
     """(restarts, n) starting points: the first is ``x_init``; the others are drawn uniformly in
     [lower, upper] where both are finite, and equal ``x_init`` elsewhere.  With ``limits``
     (hard bounds) every start is then moved inside them (the draws themselves are unchanged)."""
-    rng = np.random.default_rng(seed)
     n = len(x_init)
     out = np.tile(np.asarray(x_init, dtype=float), (max(1, restarts), 1))
     ranged = np.isfinite(lower) & np.isfinite(upper)
     if restarts > 1 and ranged.any():
-        draws = rng.uniform(size=(restarts - 1, n))
+        draws = np.random.default_rng(seed).uniform(size=(restarts - 1, n))
         span = np.where(ranged, upper - lower, 0.0)
         base = np.where(ranged, lower, 0.0)
         out[1:] = np.where(ranged, base + draws * span, out[1:])

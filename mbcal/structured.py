@@ -28,10 +28,14 @@ structure stated explicitly (:class:`Structure`), so problems written outside th
 :func:`structure_of` finds the structure of a :class:`mbcal.problem.Problem` built from a model
 (each configuration's own unknowns, e.g. ``board.roll@view17``, form its block).
 
+Hard bounds take the dense solver's projected steps (its active-set rule, :func:`mbcal.solver.active_set`)
+by blocks: a held unknown's rows and columns of the damped blocks become the identity's.
+
 After the solve, :func:`analyze_structured` gives the covariance of the shared unknowns from the
 reduced system, the marginal covariance of any block on request, and the unobservable directions
 by name — within a block from that block alone, across the shared unknowns from the reduced
-system — without ever forming the full n × n matrix.
+system — without ever forming the full n × n matrix; :func:`observability_structured` is the
+report's analysis, and :func:`rank_candidates_structured` ranks candidate measurements, by blocks.
 """
 
 from __future__ import annotations
@@ -43,7 +47,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from mbcal._jax import jax, jit, jnp
+from mbcal._jax import jax, jit, jnp, release_memory
 from mbcal.cache import Hasher, exported
 from mbcal.datasets.bal import BalProblem
 from mbcal.errors import SolverError
@@ -51,8 +55,12 @@ from mbcal.observability import (
     Observability,
     ObservabilityConfig,
     PointUncertainty,
+    Suggestion,
     _combination,
     _sparse_basis,
+    active_sides,
+    best_suggestions,
+    null_seen,
     point_uncertainties,
 )
 from mbcal.problem import Problem
@@ -64,7 +72,11 @@ from mbcal.solver import (
     _Identity,
     _solve_spd,
     _solve_step,
+    active_at_end,
+    active_set,
+    hard_limits,
     marquardt_trial,
+    projected,
     restart_loop,
     robust_system,
     step_status,
@@ -83,6 +95,7 @@ __all__ = [
     "STRUCTURED_MIN_BLOCKS",
     "DENSE_ANALYSIS_ENTRIES",
     "dense_jacobian",
+    "expand_jacobian",
     "square_root_information",
     "compressed_jacobian",
     "check_structure",
@@ -91,6 +104,8 @@ __all__ = [
     "joint_from_dense",
     "StructuredLinear",
     "observability_structured",
+    "held_columns",
+    "rank_candidates_structured",
 ]
 
 STRUCTURED_MIN_BLOCKS = 8
@@ -347,9 +362,17 @@ def _lm_structured(
     ix: _Arrays,
     sizes: tuple[int, int, int, int, int, bool],
     local: LocalParameterisation | None,
+    bounds: tuple[Array, Array] | None = None,
 ) -> tuple:
     """The Schur-complement Marquardt loop from each start (rows of ``x0s``): (x, cost, status,
-    iterations) per start (the restarts run in :func:`mbcal.solver.restart_loop`)."""
+    iterations) per start (the restarts run in :func:`mbcal.solver.restart_loop`), and with
+    ``bounds`` the active bounds at the end (−1, 0, +1 per unknown).
+
+    With bounds, the projected steps of :func:`mbcal.solver.least_squares` by blocks: an active
+    unknown's rows and columns of U_b + λD_b (or of V_g + λD_g) become the identity's, its rows or
+    columns of W and its entry of g zero, so the Schur complement gives it δ = 0 and the others the
+    dense solver's step; the trial point is clipped.  Without bounds the traced program is the
+    unbounded one."""
     m, B, G, P, nb, padded = sizes
     loss, scale = config.loss, config.loss_scale
     assert scale is not None
@@ -384,11 +407,22 @@ def _lm_structured(
     def unpack(packed):
         return _Normal(*(packed[a:b].reshape(shape) for a, b, shape in zip([0, *ends[:-1]], ends, shapes)))
 
-    def gradient_small(rw, N):
+    def free_of(x, N):
+        """(B, nb), (G, ks): the unknowns not held at an active bound (the dense solver's rule)."""
+        assert bounds is not None
+        lo, up = bounds
+        fb = ~active_set(x[ix.blocks], N.gb, lo[ix.blocks], up[ix.blocks])
+        fs = ~active_set(x[ix.shared], N.gs, lo[ix.shared], up[ix.shared])
+        return fb, fs
+
+    def gradient_small(rw, N, x):
         # ‖J_j‖² is the diagonal of JᵀJ: of U for block unknowns, of V for shared ones.
         colb = jnp.sqrt(jnp.diagonal(N.U, axis1=1, axis2=2))
         cols = jnp.sqrt(jnp.diagonal(N.V, axis1=1, axis2=2))
         gb, gs = N.gb, N.gs
+        if bounds is not None:  # the projected gradient
+            fb, fs = free_of(x, N)
+            gb, gs = jnp.where(fb, gb, 0.0), jnp.where(fs, gs, 0.0)
         rn = jnp.sqrt(jnp.sum(rw * rw))
 
         def cosine(g, col):
@@ -425,7 +459,7 @@ def _lm_structured(
         tiny = (actual <= config.ftol * cost) & (predicted <= config.ftol * cost)
         status = jnp.where((status == 0) & accept & ~first & tiny, Status.CONVERGED_COST, status)
         status = jnp.where((status == 0) & accept & (cost == 0), Status.CONVERGED_COST, status)
-        status = jnp.where((status == 0) & accept & gradient_small(rw, N), Status.CONVERGED_GRADIENT, status)
+        status = jnp.where((status == 0) & accept & gradient_small(rw, N, x), Status.CONVERGED_GRADIENT, status)
         # Marquardt's scaling, as the dense solver: running maximum of diag(JᵀJ), floored.
         Db = jnp.maximum(Db, jnp.diagonal(N.U, axis1=1, axis2=2))
         Ds = jnp.maximum(Ds, jnp.diagonal(N.V, axis1=1, axis2=2))
@@ -433,29 +467,43 @@ def _lm_structured(
         Dcb, Dcs = jnp.maximum(Db, floor), jnp.maximum(Ds, floor)
         Ud = N.U + lam * jax.vmap(jnp.diag)(Dcb)
         Vd = N.V + lam * jax.vmap(jnp.diag)(Dcs)
+        W, gb, gs = N.W, N.gb, N.gs
+        if bounds is not None:
+            # Active unknowns are held: their rows and columns become the identity's, as densely.
+            fb, fs = free_of(x, N)
+            Ud = jnp.where(fb[:, :, None] & fb[:, None, :], Ud, 0.0) + jax.vmap(jnp.diag)(jnp.where(fb, 0.0, 1.0))
+            Vd = jnp.where(fs[:, :, None] & fs[:, None, :], Vd, 0.0) + jax.vmap(jnp.diag)(jnp.where(fs, 0.0, 1.0))
+            W = jnp.where(fb[ix.pair_block][:, :, None] & fs[ix.pair_group][:, None, :], W, 0.0)
+            gb, gs = jnp.where(fb, gb, 0.0), jnp.where(fs, gs, 0.0)
         Ui = jax.vmap(_inverse_spd)(Ud)  # (B, nb, nb)
-        S = _reduced(Ui, Vd, N.W, ix, G)
-        ub = jnp.einsum("bij,bj->bi", Ui, N.gb)  # Ũ⁻¹ g_b
-        rhs = -N.gs + jax.ops.segment_sum(jnp.einsum("pij,pi->pj", N.W, ub[ix.pair_block]), ix.pair_group, G)
+        S = _reduced(Ui, Vd, W, ix, G)
+        ub = jnp.einsum("bij,bj->bi", Ui, gb)  # Ũ⁻¹ g_b
+        rhs = -gs + jax.ops.segment_sum(jnp.einsum("pij,pi->pj", W, ub[ix.pair_block]), ix.pair_group, G)
         # LAPACK's Cholesky: one small system per restart; unrolled (as the blocks' inverses, which
         # it vectorises across blocks) its 9 × 9 took 0.3 s of a cold first call's compile (issue 16).
         ds = _solve_step(S, rhs.reshape(-1)).reshape(G, ks)
-        Wds = jax.ops.segment_sum(jnp.einsum("pij,pj->pi", N.W, ds[ix.pair_group]), ix.pair_block, B)
-        db = -jnp.einsum("bij,bj->bi", Ui, N.gb + Wds)
+        Wds = jax.ops.segment_sum(jnp.einsum("pij,pj->pi", W, ds[ix.pair_group]), ix.pair_block, B)
+        db = -jnp.einsum("bij,bj->bi", Ui, gb + Wds)
         finite_step = jnp.all(jnp.isfinite(db)) & jnp.all(jnp.isfinite(ds))
         db = jnp.where(finite_step, db, 0.0)
         ds = jnp.where(finite_step, ds, 0.0)
         delta = jnp.zeros(n).at[ix.blocks].set(db).at[ix.shared].set(ds)
+        tb, ts = db, ds  # the step taken: δ, or with bounds its projection
+        if bounds is not None:
+            taken = projected(x, delta, bounds[0], bounds[1])
+            tb, ts = taken[ix.blocks], taken[ix.shared]
         # The linear model's decrease: −(2 gᵀδ + ‖J δ‖²), ‖J δ‖² = δᵀ JᵀJ δ from the blocks.
         JdJd = (
-            jnp.einsum("bi,bij,bj->", db, N.U, db)
-            + 2.0 * jnp.einsum("pi,pij,pj->", db[ix.pair_block], N.W, ds[ix.pair_group])
-            + jnp.einsum("gi,gij,gj->", ds, N.V, ds)
+            jnp.einsum("bi,bij,bj->", tb, N.U, tb)
+            + 2.0 * jnp.einsum("pi,pij,pj->", tb[ix.pair_block], N.W, ts[ix.pair_group])
+            + jnp.einsum("gi,gij,gj->", ts, N.V, ts)
         )
-        gd = jnp.sum(N.gb * db) + jnp.sum(N.gs * ds)
+        gd = jnp.sum(N.gb * tb) + jnp.sum(N.gs * ts)
         predicted = jnp.where(finite_step, -(2.0 * gd + JdJd), -1.0)
         status = step_status(config, status, finite_step, delta, x, lam, it)
         x_next = x + delta if local is None else local.plus(x, delta)
+        if bounds is not None:
+            x_next = jnp.clip(x_next, bounds[0], bounds[1])
         x_try = jnp.where(finite_step, x_next, x)
         return _State(x, r, rw, Jw, cost, x_try, predicted, lam, nu, Db, Ds, it, status.astype(jnp.int32))
 
@@ -463,7 +511,14 @@ def _lm_structured(
         total = robust_system(loss, scale, final.r, jnp.zeros((m, 1)))[0]
         cost = jnp.where(final.status == Status.NON_FINITE, jnp.inf, total)
         x = final.x if local is None else local.represent(final.x, x0)
-        return x, cost, final.status, final.it
+        if bounds is None:
+            return x, cost, final.status, final.it
+        N = unpack(final.Jw)
+        col = jnp.zeros(n).at[ix.blocks].set(jnp.diagonal(N.U, axis1=1, axis2=2))
+        col = jnp.sqrt(col.at[ix.shared].set(jnp.diagonal(N.V, axis1=1, axis2=2)))
+        g = jnp.zeros(n).at[ix.blocks].set(N.gb).at[ix.shared].set(N.gs)
+        rn = jnp.sqrt(jnp.sum(final.rw * final.rw))
+        return x, cost, final.status, final.it, active_at_end(final.x, g, col, rn, bounds[0], bounds[1], config.gtol)
 
     final = restart_loop(lambda s: s.status == 0, body, jax.vmap(start)(x0s))
     return jax.vmap(finish)(final, x0s)
@@ -472,13 +527,21 @@ def _lm_structured(
 # Few programs, as in mbcal.solver: each compiled program holds hundreds of XLA's memory maps, and a
 # long process that kept dozens alive came near the kernel's limit, where XLA:CPU crashes (issue 16).
 @functools.lru_cache(maxsize=8)
-def _compiled(fun: Callable, config: SolverConfig, sizes: tuple[int, ...], wrapped: _Identity | None) -> Callable:
+def _compiled(
+    fun: Callable, config: SolverConfig, sizes: tuple[int, ...], wrapped: _Identity | None, bounded: bool = False
+) -> Callable:
     local = None if wrapped is None else wrapped.obj
+    if not bounded:  # the unbounded program, as it always was
 
-    def batch(x0s, args, ix):
-        return _lm_structured(fun, config, x0s, args, _Arrays(*ix), sizes, local)  # type: ignore[arg-type]
+        def batch(x0s, args, ix):
+            return _lm_structured(fun, config, x0s, args, _Arrays(*ix), sizes, local)  # type: ignore[arg-type]
 
-    return jit(batch)
+        return jit(batch)
+
+    def batch_bounded(x0s, args, ix, lower, upper):
+        return _lm_structured(fun, config, x0s, args, _Arrays(*ix), sizes, local, (lower, upper))  # type: ignore[arg-type]
+
+    return jit(batch_bounded)
 
 
 def least_squares_structured(
@@ -490,6 +553,7 @@ def least_squares_structured(
     config: SolverConfig | None = None,
     local: LocalParameterisation | None = None,
     cache_key: str | None = None,
+    bounds: tuple[Array, Array] | None = None,
 ) -> LeastSquaresResult:
     """Minimise ``Σ ρ(r_i²)`` for ``r = fun(x, *args)`` by Schur-complement Marquardt steps.
 
@@ -497,35 +561,47 @@ def least_squares_structured(
     the same :class:`~mbcal.solver.SolverConfig`, statuses and result), plus the ``structure``:
     row i of ``fun`` must depend only on the unknowns of block ``structure.row_block[i]`` and of
     shared group ``structure.row_group[i]`` (a row that broke the promise would get a wrong
-    Jacobian: :func:`check_structure` tests it on a small problem).  Hard bounds are not
-    supported here (use the dense solver).  ``cache_key``: as for the dense solver, a fingerprint
-    of everything ``fun`` (and ``local``) depends on besides ``args``: the traced program is saved
-    and a later process reuses it without tracing (issue 16).
+    Jacobian: :func:`check_structure` tests it on a small problem).  ``bounds``: hard bounds
+    (lower, upper), as for the dense solver — the same projected steps, taken by blocks, the same
+    validation, starts moved inside, and the result's ``active``; None or all infinite: the
+    unbounded program.  ``cache_key``: as for the dense solver, a fingerprint of everything
+    ``fun`` (and ``local``) depends on besides ``args``: the traced program is saved and a later
+    process reuses it without tracing (issue 16).
     """
     config = config or SolverConfig()
     x0 = np.atleast_2d(np.asarray(x0, dtype=float))
     if x0.shape[1] != structure.n:
         raise SolverError(f"x0 has {x0.shape[1]} unknowns; the structure names {structure.n}")
+    limits, x0 = hard_limits(bounds, x0)
     # NumPy arguments go straight into the compiled program (~3 µs; jax.device_put costs ~30 µs
     # each, jnp.asarray compiles a program per shape: issue 16)
     args = tuple(a if isinstance(a, jax.Array) else np.asarray(a) for a in args)
     local = local if config.manifold else None
     ix = structure.arrays()
     sizes = (structure.m, structure.n_blocks, structure.n_groups, len(ix["pair_block"]), structure.nb, ix["padded"])
-    program = _compiled(fun, config, sizes, None if local is None else _Identity(local))
+    program = _compiled(fun, config, sizes, None if local is None else _Identity(local), limits is not None)
     arrays = tuple(ix[name] for name in _Arrays._fields)
-    example = (x0, args, arrays)
+    example: tuple[Any, ...] = (x0, args, arrays)
+    if limits is not None:
+        example += limits
     if cache_key is not None:  # the structure's index arrays are arguments: only their shapes enter
         key = Hasher().add("structured", cache_key, repr(config), sizes, x0.shape)
         key.add([(a.shape, str(a.dtype)) for a in args], [(a.shape, str(a.dtype)) for a in arrays])
+        if limits is not None:
+            key.add("bounded")
         if local is not None:
             key.add("local", type(local).__module__, type(local).__qualname__)
         program = exported(key.hexdigest(), program, *example)
     out = program(*example)
-    x, cost, status, it = (np.asarray(v) for v in out)
+    x, cost, status, it = (np.asarray(v) for v in out[:4])
+    active = np.asarray(out[4]) if limits is not None else None
+    del out
+    release_memory(8 * structure.m * (structure.nb + structure.ks) * len(x0))  # the program's m × c buffers
     finite = np.isfinite(cost)
     best = int(np.argmin(np.where(finite, cost, np.inf))) if finite.any() else -1
-    return LeastSquaresResult(x=x, x0=x0, cost=cost, status=status, iterations=it, best=best, config=config)
+    return LeastSquaresResult(
+        x=x, x0=x0, cost=cost, status=status, iterations=it, best=best, config=config, active=active
+    )
 
 
 @functools.lru_cache(maxsize=8)
@@ -565,6 +641,7 @@ def compressed_jacobian(
             key.add("local", type(local).__module__, type(local).__qualname__)
         program = exported(key.hexdigest(), program, *example)
     J, r = program(*example)
+    release_memory(8 * structure.m * c)  # the program's temporaries
     return np.asarray(r), np.asarray(J)
 
 
@@ -595,7 +672,7 @@ def block_point_uncertainties(
     idx: np.ndarray,
     items: Sequence[tuple[str, str, str | None]],
     eyes: Sequence[np.ndarray | None] | np.ndarray,
-) -> list[PointUncertainty]:
+) -> Sequence[PointUncertainty]:
     """Point uncertainties of a problem with a block per configuration (:func:`structure_of`)
     from each point's compressed Jacobian and its block's joint covariance with the shared
     unknowns ``joint`` (B, nb + ks, nb + ks): k × 3 × (nb + ks) numbers, where the dense way
@@ -856,6 +933,9 @@ def analyze_structured(
     block_var = np.einsum("bii->bi", U_pinv).copy()  # einsum gives a view of the diagonal
     np.add.at(block_var, ix["pair_block"][ix["pp_a"]], 2.0 * inner)
     np.add.at(block_var, ix["pair_block"], own)
+    temporaries = Jc.nbytes
+    del Jc, Y
+    release_memory(temporaries)
     return StructuredAnalysis(
         structure=structure,
         shared_covariance=S_inv * chi2_scale,
@@ -881,12 +961,18 @@ def dense_jacobian(
     forward pass with nb + ks tangents instead of n), and Jc itself.  For the dense analysis of
     problems of moderate size (see :data:`DENSE_ANALYSIS_ENTRIES`)."""
     r, Jc = compressed_jacobian(fun, x, structure, args, local, cache_key)
+    return r, expand_jacobian(Jc, structure), Jc
+
+
+def expand_jacobian(Jc: np.ndarray, structure: Structure, start: int = 0) -> np.ndarray:
+    """The m × n Jacobian rows ``start … start + len(Jc)`` scattered from their compressed rows."""
     nb = structure.nb
-    J = np.zeros((structure.m, structure.n))
-    rows = np.arange(structure.m)[:, None]
-    J[rows, structure.blocks[structure.row_block]] = Jc[:, :nb]
-    J[rows, structure.shared[structure.row_group]] = Jc[:, nb:]
-    return r, J, Jc
+    where = slice(start, start + len(Jc))
+    J = np.zeros((len(Jc), structure.n))
+    rows = np.arange(len(Jc))[:, None]
+    J[rows, structure.blocks[structure.row_block[where]]] = Jc[:, :nb]
+    J[rows, structure.shared[structure.row_group[where]]] = Jc[:, nb:]
+    return J
 
 
 def square_root_information(Jc: np.ndarray, row_block: np.ndarray, structure: Structure) -> np.ndarray:
@@ -900,13 +986,7 @@ def square_root_information(Jc: np.ndarray, row_block: np.ndarray, structure: St
         raise SolverError("square_root_information needs one group of shared unknowns")
     nb, ks, B, n = structure.nb, structure.ks, structure.n_blocks, structure.n
     c = nb + ks
-    counts = np.bincount(row_block, minlength=B)
-    L = max(int(counts.max()) if len(row_block) else 0, c)
-    order = np.argsort(row_block, kind="stable")
-    first = np.concatenate([[0], np.cumsum(counts)])[:-1]
-    table = np.zeros((B, L, c))  # each block's rows, padded with zero rows (they change nothing)
-    sorted_blocks = row_block[order]
-    table[sorted_blocks, np.arange(len(order)) - first[sorted_blocks]] = Jc[order]
+    table = _block_table(Jc, row_block, B, c)
     R: Any = np.linalg.qr(table, mode="r")  # (B, c, c): only R (numpy's stubs type the result loosely)
     Rs: Any = np.linalg.qr(np.ascontiguousarray(R[:, nb:, nb:]).reshape(B * ks, ks), mode="r")
     out = np.zeros((n, n))
@@ -915,6 +995,21 @@ def square_root_information(Jc: np.ndarray, row_block: np.ndarray, structure: St
     out[blocks[:, :, None], shared[None, None, :]] = R[:, :nb, nb:]
     out[shared[:, None], shared[None, :]] = Rs
     return out
+
+
+def _block_table(Jc: np.ndarray, row_block: np.ndarray, B: int, at_least: int = 1) -> np.ndarray:
+    """(B, L, c): each block's rows of a compressed Jacobian, padded with zero rows (they change
+    neither JᵀJ nor a QR or SVD factor), L ≥ ``at_least``."""
+    m, c = Jc.shape
+    counts = np.bincount(row_block, minlength=B)
+    L = max(int(counts.max()) if m else 0, at_least)
+    order = np.argsort(row_block, kind="stable")
+    first = np.concatenate([[0], np.cumsum(counts)])[:-1]
+    within = np.empty(m, dtype=np.int64)  # each row's place among its block's rows
+    within[order] = np.arange(m) - first[row_block[order]]
+    table = np.zeros((B, L, c))
+    table[row_block, within] = Jc  # (not Jc[order]: a copy of the m × c rows)
+    return table
 
 
 DENSE_ANALYSIS_ENTRIES = 40_000_000
@@ -961,22 +1056,13 @@ class _BlockFactor:
         reduced system's.  ``scales``: the factor is of J with each column times its unknown's
         scale, (B, nb) for the blocks' and (ks,) for the shared ones (applied to the padded rows:
         no scaled copy of J, 26 MB at 2,000 views)."""
-        m, c = Jc.shape
+        c = Jc.shape[1]
         ks = c - nb
         self.B, self.nb, self.ks = B, nb, ks
-        counts = np.bincount(row_block, minlength=B)
-        L = max(int(counts.max()) if m else 0, 1)
-        order = np.argsort(row_block, kind="stable")
-        first = np.concatenate([[0], np.cumsum(counts)])[:-1]
-        within = np.empty(m, dtype=np.int64)  # each row's place among its block's rows
-        within[order] = np.arange(m) - first[row_block[order]]
-        table = np.zeros((B, L, c))
-        table[row_block, within] = Jc  # (not Jc[order]: a copy of the m × c rows)
+        table = _block_table(Jc, row_block, B, nb)  # the thin SVD needs at least nb rows
         if scales is not None:
             table[:, :, :nb] *= scales[0][:, None, :]
             table[:, :, nb:] *= scales[1]
-        if L < nb:  # the thin SVD needs at least nb rows: zero rows change nothing
-            table = np.concatenate([table, np.zeros((B, nb - L, c))], axis=1)
         self.table = table
         P, sb, Qt = np.linalg.svd(table[:, :, :nb], full_matrices=False)  # (B, L, nb), (B, nb), (B, nb, nb)
         Zs = table[:, :, nb:]
@@ -1121,6 +1207,7 @@ class BlockCovariance:
         self._q = q
         self._std: np.ndarray | None = None
         self._information_max: float | None = None  # λmax of the scaled JᵀJ (priors included)
+        self.held = np.zeros(n, dtype=bool)  # at an active hard bound: σ 0, correlations NaN
 
     def __len__(self) -> int:
         return self.shape[0]
@@ -1142,13 +1229,14 @@ class BlockCovariance:
             std = self.std()
             with np.errstate(invalid="ignore", divide="ignore"):
                 out = out / (std[I] * std[J])
-            out = np.where(bad | ~np.isfinite(out), np.nan, out)
-            return np.where((I == J) & ~bad, 1.0, out)
-        return np.where(bad, np.inf, out)
+            held = self.held[I] | self.held[J]
+            out = np.where(bad | held | ~np.isfinite(out), np.nan, out)
+            return np.where((I == J) & ~bad & ~held, 1.0, out)
+        return np.where(bad, np.inf, np.where(self.held[I] | self.held[J], 0.0, out))
 
     def diagonal(self) -> np.ndarray:
         if self.normalized:
-            return np.where(self.infinite, np.nan, 1.0)
+            return np.where(self.infinite | self.held, np.nan, 1.0)
         i = np.arange(self.shape[0])
         return self._entries(i, i)
 
@@ -1157,12 +1245,13 @@ class BlockCovariance:
         if self._std is None:
             i = np.arange(self.shape[0])
             d = self._raw(i, i) * self.scales**2 * self.chi2_scale
-            self._std = np.where(self.infinite, np.inf, np.sqrt(np.clip(d, 0, None)))
+            self._std = np.where(self.infinite, np.inf, np.where(self.held, 0.0, np.sqrt(np.clip(d, 0, None))))
         return self._std
 
     def correlation(self) -> BlockCovariance:
         twin = BlockCovariance(self._f, self.structure, self.scales, self.chi2_scale, self.infinite, self.names, True)
         twin._std = self.std()
+        twin.held = self.held
         return twin
 
     def __getitem__(self, key: Any) -> Any:
@@ -1205,6 +1294,8 @@ class BlockCovariance:
         C = np.concatenate([top, bottom], axis=1)
         sc = self.scales[idx]
         C = C * sc[:, :, None] * sc[:, None, :] * self.chi2_scale
+        held = self.held[idx]
+        C = np.where(held[:, :, None] | held[:, None, :], 0.0, C)
         bad = self.infinite[idx]
         C = np.where(bad[:, :, None] | bad[:, None, :], np.inf, C)
         return idx, C
@@ -1289,7 +1380,7 @@ class BlockCovariance:
         idx: np.ndarray,
         items: Sequence[tuple[str, str, str | None]],
         eyes: Sequence[np.ndarray | None] | np.ndarray,
-    ) -> list[PointUncertainty]:
+    ) -> Sequence[PointUncertainty]:
         """:func:`mbcal.observability.point_uncertainties` from each point's compressed Jacobian
         (its configuration's block and the shared unknowns: nb + ks tangents, not n)."""
         return block_point_uncertainties(problem, self.structure, self.joint()[1], x, cfg_idx, idx, items, eyes)
@@ -1380,6 +1471,28 @@ class StructuredLinear:
         return t, int(pos.size - (self.rank - other.rank))
 
 
+def held_columns(structure: Structure, Jc: np.ndarray, held: np.ndarray) -> np.ndarray:
+    """The compressed Jacobian (one shared group) with the columns of the unknowns ``held`` (n,)
+    at an active hard bound set to zero (a copy): they are not estimated from the data."""
+    nb = structure.nb
+    out = np.array(Jc, dtype=float)
+    out[:, :nb][held[structure.blocks][structure.row_block]] = 0.0
+    out[:, nb:][:, held[structure.shared[0]]] = 0.0
+    return out
+
+
+def _free_null(null: np.ndarray, held: np.ndarray) -> np.ndarray:
+    """The null directions that leave the ``held`` unknowns alone, orthonormal: a held unknown's
+    zero column makes its own axis a null direction of J, which is not an unobservable one."""
+    if not held.any() or not null.size:
+        return null
+    _, sv, vt = np.linalg.svd(null[held], full_matrices=True)
+    rank = int(np.sum(sv > 1e-8))
+    out = null @ vt[rank:].T
+    out[held] = 0.0
+    return out
+
+
 def observability_structured(
     problem: Problem,
     structure: Structure,
@@ -1390,16 +1503,22 @@ def observability_structured(
     scales: np.ndarray,
     config: ObservabilityConfig | None = None,
     chi2_scale: float = 1.0,
+    active: np.ndarray | None = None,
 ) -> Observability:
     """:func:`mbcal.observability.analyze` of a structured problem (one shared group) from its
     compressed Jacobian ``Jc`` (measurement rows, then prior rows): the same rank, named
     unobservable and weak directions, condition number and covariance, without the n × n matrix.
     The covariance is a :class:`BlockCovariance`; ``singular_values`` holds only the largest and
-    the smallest nonzero singular value of the scaled Jacobian (Lanczos iterations, not an SVD)."""
+    the smallest nonzero singular value of the scaled Jacobian (Lanczos iterations, not an SVD).
+    ``active``: the solver's active bounds (−1, 0, +1 per unknown); those unknowns are held fixed
+    as :func:`mbcal.observability.analyze` holds them (their columns set to zero)."""
     if structure.n_groups != 1:
         raise SolverError("the structured analysis needs one group of shared unknowns")
     config = config or ObservabilityConfig()
     n = structure.n
+    held = np.zeros(n, dtype=bool) if active is None else np.asarray(active) != 0
+    if held.any():
+        Jc = held_columns(structure, Jc, held)
     S = np.asarray(scales, dtype=float)
     rb = structure.row_block
     column_scales = (S[structure.blocks], S[structure.shared[0]])
@@ -1408,7 +1527,7 @@ def observability_structured(
 
     fm = _BlockFactor(Jm, rbm, structure.n_blocks, structure.nb, config.rtol, exact=True, scales=column_scales)
     smax = fm.smax
-    null = fm.null_vectors(structure)
+    null = fm.null_vectors(structure)  # with the held unknowns' axes: projected out of the inverse
     rank = fm.rank
     has_priors = Jc.shape[0] > size
     if has_priors:
@@ -1431,11 +1550,14 @@ def observability_structured(
     inv_big, _ = _largest_eigenvalues(cov_m, n) if rank else (np.zeros(1), None)
     smin = float(1.0 / np.sqrt(inv_big[-1])) if rank and inv_big[-1] > 0 else 0.0
     condition = float(smax / smin) if rank and smin > 0 else float("inf")
+    null_t = _free_null(null_t, held)
     in_null = np.sum(null_t**2, axis=1) > 1e-12 if null_t.size else np.zeros(n, dtype=bool)
     cov = BlockCovariance(ft, structure, S, chi2_scale, in_null, names)
     cov._information_max = ft.smax**2
+    cov.held = held
+    free_null = _free_null(null, held)
     unobservable = [
-        _combination(v, names, units, S, float("inf"), config.coefficient_tol) for v in _sparse_basis(null).T
+        _combination(v, names, units, S, float("inf"), config.coefficient_tol) for v in _sparse_basis(free_null).T
     ]
     weak = []
     # σ along a direction is √χ² / (its singular value): none exceeds config.weak when even the
@@ -1467,6 +1589,91 @@ def observability_structured(
         std=std,
         correlation=cov.correlation(),
         chi2_scale=chi2_scale,
-        null_space=null,
+        null_space=free_null,
         n_values=int(size),
+        active_bounds={} if active is None else active_sides(names, active),
     )
+
+
+_CANDIDATE_RTOL = 1e-6
+"""The ranking's rank decisions on scaled singular values: :func:`mbcal.observability.rank_candidates`
+counts an eigenvalue of the information matrix as positive above 1e-12 of the largest."""
+
+
+def rank_candidates_structured(
+    obs: Observability,
+    structure: Structure,
+    Jc: np.ndarray,
+    candidates: Sequence[tuple[dict[str, Any], np.ndarray, int]],
+    *,
+    top: int = 10,
+) -> list[Suggestion]:
+    """:func:`mbcal.observability.rank_candidates` from the blocks: the same scores (rank gained,
+    relative reduction of the largest scaled σ) and the same order, without any n × n or m × n
+    matrix.
+
+    ``Jc``: the problem's compressed Jacobian (measurement rows, then prior rows, one shared
+    group); ``candidates``: (record, compressed rows (s, nb + ks), block) triples — a candidate
+    measurement of configuration b depends on block b and the shared unknowns only.
+
+    Each block's scaled rows are replaced by their R factor (c × c, c = nb + ks: the same JᵀJ), so
+    a candidate changes one block's c rows: its information is the base's with that block's R
+    factor re-factored with the candidate's rows.  The largest σ over the directions left
+    observable (the complement of the null space N the candidate leaves) is √λmax of the inverse
+    of JᵀJ compressed to that complement, M⁺ − M⁺N(NᵀM⁺N)⁻¹NᵀM⁺ (M⁺ by :class:`_BlockFactor`,
+    N stripped of M's own null directions), by Lanczos iterations (exactly below 64 unknowns).
+    Only candidates that can reach the ``top`` (those with the largest rank gains) get a σ."""
+    s = structure
+    if s.n_groups != 1:
+        raise SolverError("ranking candidates by blocks needs one group of shared unknowns")
+    n, nb, ks, B = s.n, s.nb, s.ks, s.n_blocks
+    c = nb + ks
+    S = np.asarray(obs.scales, dtype=float)
+    if obs.active_bounds:
+        S = np.where(obs.fixed, 0.0, S)  # held at a bound: no measurement can help
+    idx = np.concatenate([s.blocks, np.broadcast_to(s.shared[0], (B, ks))], axis=1)  # (B, c)
+    col = S[idx]
+    table = _block_table(Jc, s.row_block, B, c)
+    table *= col[:, None, :]
+    base: Any = np.linalg.qr(table, mode="r")  # (B, c, c)
+    del table
+    null = obs.null_space if obs.null_space is not None else np.zeros((n, 0))
+    row_block = np.repeat(np.arange(B), c)
+
+    def worst(rows: np.ndarray, new_null: np.ndarray) -> float:
+        f = _BlockFactor(rows.reshape(-1, c), row_block, B, nb, _CANDIDATE_RTOL)
+
+        def solve(v: np.ndarray) -> np.ndarray:
+            xb, xs = f.solve(v[s.blocks], v[s.shared[0]])
+            out = np.zeros_like(v)
+            out[s.blocks], out[s.shared[0]] = xb, xs
+            return out
+
+        kept = new_null
+        if kept.shape[1]:  # N less the directions M itself leaves out (they are in N)
+            own = f.null_vectors(s)
+            kept = kept - own @ (own.T @ kept)
+            u, sv, _ = np.linalg.svd(kept, full_matrices=False)
+            kept = u[:, sv > 0.5]
+        MN = solve(kept) if kept.shape[1] else np.zeros((n, 0))
+        Gi = np.linalg.inv(kept.T @ MN) if kept.shape[1] else np.zeros((0, 0))
+
+        def compressed(v: np.ndarray) -> np.ndarray:
+            return solve(v) - MN @ (Gi @ (MN.T @ v))
+
+        lam, _ = _largest_eigenvalues(compressed, n)
+        return float(np.sqrt(lam[-1])) if lam[-1] > 0 else float("inf")
+
+    def with_candidate(candidate: tuple[np.ndarray, int], new_null: np.ndarray) -> float:
+        R, b = candidate
+        rows = base.copy()
+        rows[b] = np.linalg.qr(np.vstack([base[b], R]), mode="r")
+        return worst(rows, new_null)
+
+    seen = []
+    for record, rows, b in candidates:
+        R = np.atleast_2d(rows) * col[b]
+        found = null_seen(R, R @ null[idx[b]], null)
+        if found is not None:
+            seen.append((*found, record, (R, b)))
+    return best_suggestions(seen, worst(base, null) if seen else 0.0, with_candidate, top)

@@ -20,6 +20,7 @@ together, and the report gives what OpenCV users expect: RMS reprojection error,
 from __future__ import annotations
 
 import math
+import weakref
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -28,6 +29,7 @@ from typing import Any
 import numpy as np
 from scipy.ndimage import map_coordinates
 
+from mbcal._jax import release_memory
 from mbcal.api import calibrate, simulate
 from mbcal.errors import MbcalError
 from mbcal.geometry import transforms as geo
@@ -39,6 +41,7 @@ from mbcal.measurements.sets import MeasurementSet, measurements_from_records
 from mbcal.modeling import Needs, modeler, parameter_vector
 from mbcal.params import ParameterSet
 from mbcal.render.views import Layer, draw_overlay, load_image, save_png
+from mbcal.solver import SolverConfig
 from mbcal.text import fmt, table
 
 __all__ = [
@@ -60,6 +63,12 @@ __all__ = [
 
 INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "skew")
 AUTO_RESTARTS = 4  # starts of calibrate_cameras(restarts=None) when Zhang's start alone is not enough
+CLOSED_FORM_LAMBDA = 1e-6
+"""Marquardt's initial λ (relative to the scaled diagonal of JᵀJ) when the solve starts from
+Zhang's closed-form solution alone: a start believed close to the minimum gets a small damping
+(Madsen, Nielsen & Tingleff, *Methods for non-linear least squares problems*, 2004, §3.2:
+τ = 10⁻⁶ then, 10⁻³ otherwise).  The default 10⁻³ damped the weak distortion directions for
+the first iterations: 13 views 14 → 10 iterations, 100 views 12 → 7 (issue 16)."""
 DISTORTION_NAMES = ("k1", "k2", "p1", "p2", "k3")
 
 
@@ -235,13 +244,50 @@ def _rpy_many(R: np.ndarray) -> np.ndarray:
     return np.stack([np.arctan2(R[:, 2, 1], R[:, 2, 2]), pitch, np.arctan2(R[:, 1, 0], R[:, 0, 0])], axis=1)
 
 
+class _Nominal:
+    """What Zhang's start reads of a model at its nominal values, once per model (issue 16: the
+    modeler and a point-by-point evaluation were ~2 ms of a warm 13-view calibration): every
+    frame's pose, and for the points asked for so far whether each lies on its frame's z = 0
+    plane (its frame, else −1) and where (x, y in that frame)."""
+
+    def __init__(self, model: Model):
+        self.model = model
+        self.X0 = model.nominal
+        # every frame's pose (no points, cameras or shapes)
+        self.frame_poses = np.asarray(modeler(model, self.X0, Needs(frames=None)).frame_poses, dtype=float)
+        self.plane_frame = np.full(len(model.points), -1, dtype=np.int64)
+        self.plane_xy = np.zeros((len(model.points), 2))
+        self.done = np.zeros(len(model.points), dtype=bool)
+
+    def planes(self, which: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(frame, xy) of the points ``which`` (model point indices)."""
+        for j in np.unique(which[~self.done[which]]).tolist():
+            p = self.model.points[j]
+            if p.frame >= 0:
+                local = np.asarray(ir.evaluate(p.position, self.X0, {}, np), dtype=float)
+                if abs(local[2]) <= 1e-9:
+                    self.plane_frame[j], self.plane_xy[j] = p.frame, local[:2]
+            self.done[j] = True
+        return self.plane_frame[which], self.plane_xy[which]
+
+
+_NOMINALS: weakref.WeakKeyDictionary[Model, _Nominal] = weakref.WeakKeyDictionary()
+
+
+def _nominal(model: Model) -> _Nominal:
+    found = _NOMINALS.get(model)
+    if found is None:
+        found = _NOMINALS[model] = _Nominal(model)
+    return found
+
+
 class _PlanarPoints:
     """The image points of planar targets in a measurement set, as arrays: per measurement its
     camera, configuration and target frame, the point on the target plane (xy, from the point's
     position evaluated once per point) and the pixels; grouped by (camera, configuration, frame)
     in order of first appearance."""
 
-    def __init__(self, model: Model, data: MeasurementSet, X0: np.ndarray):
+    def __init__(self, model: Model, data: MeasurementSet):
         columns = data.columns()  # arrays, not a walk over thousands of measurements (issue 15)
         self.configs = columns.config_names
         col = columns.kinds.get("image_point")
@@ -250,25 +296,22 @@ class _PlanarPoints:
         else:
             # each distinct point once: its target frame and its xy on the target's z = 0 plane
             point_names, point_code = col.refs["point"]
-            frame = np.full(len(point_names), -1, dtype=np.int64)
-            plane_xy = np.zeros((len(point_names), 2))
-            for j, name in enumerate(point_names):
-                p = model.points[model.point_index(name)]
-                if p.frame >= 0:
-                    local = np.asarray(ir.evaluate(p.position, X0, {}, np), dtype=float)
-                    if abs(local[2]) <= 1e-9:
-                        frame[j], plane_xy[j] = p.frame, local[:2]
+            which = np.array([model.point_index(name) for name in point_names], dtype=np.int64)
+            frame, plane_xy = _nominal(model).planes(which)
             camera_names, camera_code = col.refs["camera"]
             camera = np.array([model.camera_index(c) for c in camera_names], dtype=np.int64)[camera_code]
             use = np.nonzero(col.has_value & (frame[point_code] >= 0))[0]
             key = np.stack([camera[use], col.config[use], frame[point_code[use]]], axis=1)
             self.xy = plane_xy[point_code[use]]
             self.uv = col.values[use]
-        unique, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+        # one integer per (camera, configuration, frame): np.unique(axis=0) sorts rows far slower
+        span = np.max(key, axis=0) + 1 if len(key) else np.ones(3, dtype=np.int64)
+        packed = (key[:, 0] * span[1] + key[:, 1]) * span[2] + key[:, 2]
+        _unique, first, inverse = np.unique(packed, return_index=True, return_inverse=True)
         order = np.argsort(first, kind="stable")  # groups in order of first appearance
         rank = np.empty(len(order), dtype=np.int64)
         rank[order] = np.arange(len(order))
-        self.keys = unique[order]  # (K, 3): camera, configuration, frame
+        self.keys = key[first[order]]  # (K, 3): camera, configuration, frame
         self.group = rank[np.ravel(inverse)] if len(key) else np.zeros(0, dtype=np.int64)
         self.count = np.bincount(self.group, minlength=len(self.keys))
 
@@ -299,10 +342,9 @@ def initial_values(model: Model, data: MeasurementSet, unknown: Sequence[str]) -
     """
     unknown_set = set(unknown)
     X0 = model.nominal
-    # every frame's pose at the nominal values, once (no points, cameras or shapes: issue 16)
-    frame_poses0 = np.asarray(modeler(model, X0, Needs(frames=None)).frame_poses, dtype=float)
+    frame_poses0 = _nominal(model).frame_poses
     values: dict[str, float] = {}
-    obs = _PlanarPoints(model, data, X0)
+    obs = _PlanarPoints(model, data)
     cameras = sorted({int(c) for c in obs.keys[:, 0]})
     poses: dict[tuple[int, int, int], np.ndarray] = {}  # T_camera_target per (camera, config, frame)
     for ci in cameras:
@@ -381,6 +423,7 @@ def initial_values(model: Model, data: MeasurementSet, unknown: Sequence[str]) -
             if all((n + suffix) in unknown_set for n in names):
                 for name, v in zip(names, row):
                     values[name + suffix] = float(v)
+    release_memory(20 * obs.uv.nbytes)  # the stacked DLT systems and their SVD's work space
     return values
 
 
@@ -476,6 +519,9 @@ def calibrate_cameras(
         consistent with the stated σ (the χ² test of the fit verdict) — a closed-form start seldom
         needs random company, a doubtful fit always gets it; without initialisation,
         :data:`AUTO_RESTARTS` starts.  A number always runs that many.
+    config : SolverConfig, optional
+        The solver's settings.  None (the default): the defaults, except that Zhang's start alone
+        starts with a small damping (:data:`CLOSED_FORM_LAMBDA`).
     scale_covariance : bool
         Scale σ by the reduced χ² (OpenCV's convention); the residuals then set the noise level.
     fit, accept_poor_fit
@@ -493,13 +539,16 @@ def calibrate_cameras(
     first = (1 if initialize else AUTO_RESTARTS) if restarts is None else restarts
 
     def run(n: int):
+        # a closed-form start alone: Marquardt's λ starts small (CLOSED_FORM_LAMBDA), unless the
+        # caller chose the solver's settings
+        close = config is None and initialize and n == 1
         return calibrate(
             model,
             data,
             estimate,
             restarts=n,
             seed=seed,
-            config=config,
+            config=SolverConfig(lambda_init=CLOSED_FORM_LAMBDA) if close else config,
             initial=start,
             scale_covariance=scale_covariance,
             progress=progress,
@@ -539,8 +588,8 @@ def calibrate_cameras(
     columns = result.problem.measurements.columns()
     col = columns.kinds.get("image_point")
     if col is not None:  # per (view, camera) in order of first appearance, from the set's columns
-        rows = [result.residuals[i] for i in col.members.tolist()]
-        e2 = np.sum((np.array([r.measured for r in rows]) - np.array([r.predicted for r in rows])) ** 2, axis=1)
+        _members, measured, predicted = result.residuals.kind("image_point")  # the rows of col, in order
+        e2 = np.sum((measured - predicted) ** 2, axis=1)
         camera_names, camera_code = col.refs["camera"]
         key = col.config * len(camera_names) + camera_code
         distinct, first_row, which = np.unique(key, return_index=True, return_inverse=True)
