@@ -41,25 +41,76 @@ usable: for scripts that want the estimate anyway.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import special  # not scipy.stats: importing it costs every command 0.35 s (issue 16)
 
 from mbcal.measurements.registry import get_model
 from mbcal.observability import Observability, ObservabilityConfig
 from mbcal.problem import Problem
 
 
+def _special() -> Any:
+    """``scipy.special``, imported when first needed: ~0.2 s of start-up (its array-API
+    machinery), which a consistent fit's single p-value does not need (issue 16)."""
+    from scipy import special
+
+    return special
+
+
+def _upper_gamma(a: float, x: float) -> float:
+    """Q(a, x) = Γ(a, x) / Γ(a), the regularised upper incomplete gamma function, for one a > 0
+    and x ≥ 0: the power series of P = 1 − Q below x = a + 1, the continued fraction of Q above
+    (evaluated by the modified Lentz method), each to double precision (Press et al., *Numerical
+    Recipes*, 3rd ed., §6.2).  The prefactor xᵃe⁻ˣ/Γ(a) is taken in logarithms."""
+    if x <= 0.0:
+        return 1.0
+    if a < 10.0:
+        log_front = a * math.log(x) - x - math.lgamma(a)
+    else:  # the same without cancelling terms of size a (Stirling's series for log Γ(a), t = x/a − 1)
+        t = (x - a) / a
+        stirling = 1.0 / (12.0 * a) - 1.0 / (360.0 * a**3) + 1.0 / (1260.0 * a**5) - 1.0 / (1680.0 * a**7)
+        log_front = -a * (t - math.log1p(t)) + 0.5 * math.log(a / (2.0 * math.pi)) - stirling
+    if x < a + 1.0:
+        term = total = 1.0 / a
+        n = 0
+        while abs(term) > abs(total) * 1e-17 and n < 1_000_000:
+            n += 1
+            term *= x / (a + n)
+            total += term
+        return max(0.0, 1.0 - total * math.exp(log_front))
+    tiny = 1e-300
+    b = x + 1.0 - a
+    c, d = 1.0 / tiny, 1.0 / b
+    h = d
+    for i in range(1, 1_000_000):
+        an = -i * (i - a)
+        b += 2.0
+        d = an * d + b
+        d = tiny if abs(d) < tiny else d
+        c = b + an / c
+        c = tiny if abs(c) < tiny else c
+        d = 1.0 / d
+        step = d * c
+        h *= step
+        if abs(step - 1.0) < 1e-16:
+            break
+    return math.exp(log_front) * h
+
+
 class _Chi2:
     """The χ² distribution's upper tail, its logarithm and median, as ``scipy.stats.chi2`` computes
-    them (chdtrc; log of it; 2·P⁻¹(df/2, ½)), from ``scipy.special`` alone."""
+    them (chdtrc; log of it; 2·P⁻¹(df/2, ½)): one tail in plain Python (:func:`_upper_gamma`),
+    arrays of them from ``scipy.special`` (imported then)."""
 
     @staticmethod
     def sf(x: Any, df: Any) -> Any:
-        return special.chdtrc(df, np.maximum(x, 0.0))  # 1 below the support, as scipy.stats
+        if np.ndim(x) == 0 and np.ndim(df) == 0:
+            return _upper_gamma(float(df) / 2.0, max(float(x), 0.0) / 2.0)
+        return _special().chdtrc(df, np.maximum(x, 0.0))  # 1 below the support, as scipy.stats
 
     @staticmethod
     def logsf(x: Any, df: Any) -> Any:
@@ -68,7 +119,7 @@ class _Chi2:
 
     @staticmethod
     def median(df: Any) -> Any:
-        return 2.0 * special.gammaincinv(np.asarray(df) / 2.0, 0.5)
+        return 2.0 * _special().gammaincinv(np.asarray(df) / 2.0, 0.5)
 
 
 class stats:  # noqa: N801  - reads like the module it stands for: stats.chi2.sf(...)

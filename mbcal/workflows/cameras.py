@@ -27,7 +27,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.ndimage import map_coordinates
 
 from mbcal._jax import release_memory
 from mbcal.api import calibrate, simulate
@@ -681,6 +680,8 @@ def target_image(scene, camera: str, target, *, supersample: int = 3, background
         return np.stack([(uu - cx - skew * yd) / fx, yd], axis=-1)
 
     if np.any(distortion):
+        from scipy.ndimage import map_coordinates  # only here: ~0.1 s of every command's start-up (issue 16)
+
         # Undistortion is smooth: solve it on a coarse grid and interpolate (cubic) in between.
         step = 4.0
         gu = np.arange(-step, W + 2 * step, step)
