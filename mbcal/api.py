@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from mbcal._jax import release_memory
 from mbcal.errors import MbcalError, SolverError
 from mbcal.errors import suggest as suggest_name
 from mbcal.fit import FitConfig, assess_fit, assess_plan
@@ -679,7 +680,11 @@ def simulate(
     if not visible.all():
         plan = plan.subset(visible)
         values = [v for v, keep in zip(values, visible) if keep]
-    return plan.with_values(values)
+    out = plan.with_values(values)
+    rows = problem.size
+    del problem, h, values
+    release_memory(64 * rows, collect=True)  # the simulation's temporaries (issue 15)
+    return out
 
 
 def observe(
