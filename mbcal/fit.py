@@ -73,7 +73,10 @@ def _upper_gamma(a: float, x: float) -> float:
     else:  # the same without cancelling terms of size a (Stirling's series for log Γ(a), t = x/a − 1)
         t = (x - a) / a
         stirling = 1.0 / (12.0 * a) - 1.0 / (360.0 * a**3) + 1.0 / (1260.0 * a**5) - 1.0 / (1680.0 * a**7)
-        log_front = -a * (t - math.log1p(t)) + 0.5 * math.log(a / (2.0 * math.pi)) - stirling
+        # a·ln(x/a) − (x − a): by log1p near x = a, where the two terms cancel; directly elsewhere
+        # (x far below a: t rounds to −1)
+        exponent = -a * (t - math.log1p(t)) if abs(t) < 0.5 else a * (math.log(x) - math.log(a)) - (x - a)
+        log_front = exponent + 0.5 * math.log(a / (2.0 * math.pi)) - stirling
     if x < a + 1.0:
         term = total = 1.0 / a
         n = 0
