@@ -66,8 +66,12 @@ def _upper_gamma(a: float, x: float) -> float:
     and x ≥ 0: the power series of P = 1 − Q below x = a + 1, the continued fraction of Q above
     (evaluated by the modified Lentz method), each to double precision (Press et al., *Numerical
     Recipes*, 3rd ed., §6.2).  The prefactor xᵃe⁻ˣ/Γ(a) is taken in logarithms."""
+    if math.isnan(x) or math.isnan(a):
+        return math.nan  # as scipy: no verdict from a cost that is not a number
     if x <= 0.0:
         return 1.0
+    if math.isinf(x):
+        return 0.0
     if a < 10.0:
         log_front = a * math.log(x) - x - math.lgamma(a)
     else:  # the same without cancelling terms of size a (Stirling's series for log Γ(a), t = x/a − 1)

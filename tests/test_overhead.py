@@ -163,6 +163,7 @@ def test_one_chi2_tail_in_plain_python_equals_scipys():
                     assert got < 1e-280
     assert worst < 1e-10
     assert stats.chi2.sf(0.0, 4) == stats.chi2.sf(-3.0, 4) == 1.0
+    assert np.isnan(stats.chi2.sf(float("nan"), 5)) and stats.chi2.sf(float("inf"), 5) == 0.0
     for df in (20, 90, 1317, 216_000):  # an exact fit: S far below the degrees of freedom
         for x in (1e-300, 1e-20, 1e-3):
             assert stats.chi2.sf(x, df) == pytest.approx(special.chdtrc(df, x), rel=1e-12)
