@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import platform
+import statistics
 import sys
 import time
 from collections.abc import Callable
@@ -35,6 +36,17 @@ def best_of(fn: Callable[[], object], repeats: int) -> float:
         fn()
         out.append(time.perf_counter() - t0)
     return min(out)
+
+
+def median_of(fn: Callable[[], object], repeats: int) -> float:
+    """The median of ``repeats`` timed calls (seconds): the measure of ../shared/PERFORMANCE-NOTES.md
+    ("medians of 20 warm runs"), where a number is compared with the notes' own."""
+    out = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        out.append(time.perf_counter() - t0)
+    return statistics.median(out)
 
 
 def cpu_name() -> str:

@@ -134,9 +134,17 @@ def test_mbcal_programs_take_xla_options_only_for_themselves(monkeypatch):
     from mbcal._jax import compiler_options, jax, jit
 
     try:
+        ours = {
+            "xla_cpu_use_fusion_emitters": False,
+            "xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_INDIVIDUAL_DOT",
+        }
         for env, expected in [
-            ({}, {"xla_cpu_use_fusion_emitters": False}),
-            ({"XLA_FLAGS": "--xla_cpu_use_fusion_emitters=true"}, {}),
+            ({}, ours),
+            (
+                {"XLA_FLAGS": "--xla_cpu_use_fusion_emitters=true"},
+                {k: v for k, v in ours.items() if "emitters" not in k},
+            ),
+            ({"XLA_FLAGS": "--xla_cpu_use_fusion_emitters=true --xla_cpu_experimental_ynn_fusion_type="}, {}),
             ({"MBCAL_XLA_OPTIONS": "off"}, {}),
         ]:
             monkeypatch.delenv("XLA_FLAGS", raising=False)
