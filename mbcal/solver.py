@@ -4,7 +4,10 @@ Each iteration solves ``(JᵀJ + λ·D) δ = −Jᵀr`` for the whitened residua
 its Jacobian J = W^½ ∂h/∂x, where D is the diagonal of JᵀJ as Marquardt proposed (kept as a
 running maximum, as MINPACK does, so a column that vanishes does not make the system singular).
 λ adapts to the nonlinearity by the gain ratio (Nielsen's rule). J comes from ``jax.jacfwd``
-together with r in one pass. The whole iteration loop is one ``lax.while_loop``; all restarts run
+together with r in one pass; the loop keeps JᵀJ and Jᵀr of the accepted point, not J. A step is
+taken when S decreases, or when the predicted and the computed change are both below what float64
+resolves in S (then S has converged to working precision). The whole iteration loop is one
+``lax.while_loop``; all restarts run
 vmapped in one compiled call, a restart that finishes is frozen while the others go on, and a
 restart that fails (non-finite residuals) gets its status without stopping the batch.
 
@@ -80,7 +83,7 @@ class Status(enum.IntEnum):
 
 
 _MESSAGES = {
-    Status.CONVERGED_COST: "converged: S changed by less than ftol (relative)",
+    Status.CONVERGED_COST: "converged: S changed by less than ftol (relative), or by less than float64 resolves",
     Status.CONVERGED_STEP: "converged: the step is smaller than xtol (relative)",
     Status.CONVERGED_GRADIENT: "converged: the gradient is orthogonal to the residuals within gtol",
     Status.MAX_ITERATIONS: "stopped: the iteration limit was reached before convergence",
@@ -355,6 +358,11 @@ def _solve_step(M: Array, b: Array) -> Array:
     return jax.scipy.linalg.solve_triangular(chol.T, half, lower=False)
 
 
+# The resolution of a change of S = Σρ(r²) computed term by term (robust_change), relative to S:
+# a few units of round-off per term, summed.
+RESOLUTION = 16 * float(np.finfo(float).eps)
+
+
 class Trial(NamedTuple):
     """One trial point of the Marquardt loop, judged: accepted or not, and the state it leaves."""
 
@@ -362,6 +370,7 @@ class Trial(NamedTuple):
     ok: Array
     accept: Array
     actual: Array
+    resolved: Array  # taken because S cannot resolve its change: converged to working precision
     x: Array
     r: Array
     rw: Array
@@ -381,15 +390,23 @@ def marquardt_trial(evaluate: Callable, weighted: Callable, loss: Loss, scale: f
     cost_new, rw_new, Jw_new = weighted(r_new, J_new)
     ok = jnp.isfinite(cost_new) & jnp.all(jnp.isfinite(Jw_new))
     actual = jnp.where(first, jnp.inf, -robust_change(loss, scale, state.r, jnp.where(ok, r_new, state.r)))
-    accept = ok & (first | (actual > 0))
     predicted = state.predicted
+    # Near the minimum the decrease falls below what float64 resolves in S: the computed change is
+    # rounding of either sign, and the rule "actual > 0" took or refused a sound Gauss–Newton step
+    # by chance (a linear fit with tolerances of 1e-15 ended 1e-14 or 1e-10 from the solution
+    # depending on how XLA ordered the sums).  A step whose predicted and computed changes are
+    # both within that resolution is taken, and the loop reports S converged (working precision).
+    resolution = RESOLUTION * (jnp.abs(state.cost) + jnp.abs(jnp.where(ok, cost_new, 0.0)))
+    resolved = ok & ~first & (predicted > 0) & (predicted <= resolution) & (jnp.abs(actual) <= resolution)
+    accept = ok & (first | (actual > 0) | resolved)
     rho = jnp.where(predicted > 0, actual / jnp.where(predicted > 0, predicted, 1.0), -1.0)
-    lam_acc = jnp.where(first, state.lam, state.lam * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3))
+    lam_acc = jnp.where(first | resolved, state.lam, state.lam * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3))
     return Trial(
         first=first,
         ok=ok,
         accept=accept,
         actual=actual,
+        resolved=resolved,
         x=jnp.where(accept, state.x_try, state.x),
         r=jnp.where(accept, r_new, state.r),
         rw=jnp.where(accept, rw_new, state.rw),
@@ -458,7 +475,7 @@ class _LMState(NamedTuple):
     x: Array  # (n,) the accepted point
     r: Array  # (m,) its residual
     rw: Array  # (m,) the residual weighted by the robust loss
-    Jw: Array  # (m, n) the weighted Jacobian
+    Jw: Array  # (n² + n,) the normal equations JwᵀJw and Jwᵀrw at x, packed: not the (m, n) Jacobian
     cost: Array  # Σρ(r²) at x
     x_try: Array  # (n,) the trial point the next iteration evaluates
     predicted: Array  # the decrease of S the linear model predicts for the trial step
@@ -529,17 +546,24 @@ def _lm_batch(
             # The Jacobian in the local coordinates about x: ∂r(x ⊞ d)/∂d at d = 0.
             return jax.jacfwd(lambda d: (lambda r: (r, r))(local.residual(x, d, *args)), has_aux=True)(zero_step)
 
-    weighted = functools.partial(robust_system, loss, scale)
+    def weighted(r, J):
+        # The loop keeps the normal equations, not the weighted Jacobian: the Marquardt step, the
+        # gradient test and the active bounds need only JᵀJ and Jᵀr, and carrying (and selecting)
+        # the m × n Jacobian every iteration was a third of the room's loop (issue 16).
+        cost, rw, Jw = robust_system(loss, scale, r, J)
+        return cost, rw, jnp.concatenate([jnp.ravel(Jw.T @ Jw), Jw.T @ rw])
+
+    def unpack(N):
+        return N[: n * n].reshape(n, n), N[n * n :]
 
     def held(x, g):
         assert bounds is not None
         return active_set(x, g, bounds[0], bounds[1])
 
-    def gradient_small(rw, Jw, x):
-        g = Jw.T @ rw
+    def gradient_small(rw, A, g, x):
         if bounds is not None:
             g = jnp.where(held(x, g), 0.0, g)  # the projected gradient
-        col = jnp.sqrt(jnp.sum(Jw * Jw, axis=0))
+        col = jnp.sqrt(jnp.diag(A))
         rn = jnp.sqrt(jnp.sum(rw * rw))
         denom = col * rn
         cosine = jnp.where(denom > 0, jnp.abs(g) / jnp.where(denom > 0, denom, 1.0), 0.0)
@@ -550,7 +574,7 @@ def _lm_batch(
             x=x0,
             r=jnp.zeros(m),
             rw=jnp.zeros(m),
-            Jw=jnp.zeros((m, n)),
+            Jw=jnp.zeros(n * n + n),
             cost=jnp.asarray(jnp.inf),
             x_try=x0,
             predicted=jnp.asarray(0.0),
@@ -572,13 +596,12 @@ def _lm_batch(
         it = it + 1
         # Convergence of the step just taken.
         status = jnp.where(first & ~ok, Status.NON_FINITE, 0)
-        tiny = (actual <= config.ftol * cost) & (predicted <= config.ftol * cost)
+        tiny = trial.resolved | ((actual <= config.ftol * cost) & (predicted <= config.ftol * cost))
         status = jnp.where((status == 0) & accept & ~first & tiny, Status.CONVERGED_COST, status)
         status = jnp.where((status == 0) & accept & (cost == 0), Status.CONVERGED_COST, status)
-        status = jnp.where((status == 0) & accept & gradient_small(rw, Jw, x), Status.CONVERGED_GRADIENT, status)
+        A, g = unpack(Jw)
+        status = jnp.where((status == 0) & accept & gradient_small(rw, A, g, x), Status.CONVERGED_GRADIENT, status)
         # The next trial point.
-        A = Jw.T @ Jw
-        g = Jw.T @ rw
         D = jnp.maximum(D, jnp.diag(A))
         Dc = jnp.maximum(D, 1e-12 * jnp.maximum(jnp.max(D), 1e-300))
         if bounds is None:
@@ -606,13 +629,15 @@ def _lm_batch(
 
     def final_active(final: _LMState) -> Array:
         assert bounds is not None
-        col = jnp.sqrt(jnp.sum(final.Jw * final.Jw, axis=0))
+        A, g = unpack(final.Jw)
         rn = jnp.sqrt(jnp.sum(final.rw * final.rw))
-        return active_at_end(final.x, final.Jw.T @ final.rw, col, rn, bounds[0], bounds[1], config.gtol)
+        return active_at_end(final.x, g, jnp.sqrt(jnp.diag(A)), rn, bounds[0], bounds[1], config.gtol)
 
     def finish(final: _LMState, x0: Array) -> tuple:
         # The running cost accumulates exact changes; report the cost of the final residual itself.
-        cost = jnp.where(final.status == Status.NON_FINITE, jnp.inf, weighted(final.r, jnp.zeros((m, 1)))[0])
+        cost = jnp.where(
+            final.status == Status.NON_FINITE, jnp.inf, robust_system(loss, scale, final.r, jnp.zeros((m, 1)))[0]
+        )
         if local is not None:
             final = final._replace(x=local.represent(final.x, x0))
         if bounds is None:

@@ -456,7 +456,7 @@ def _lm_structured(
         it = it + 1
         N = unpack(Jw)
         status = jnp.where(first & ~ok, Status.NON_FINITE, 0)
-        tiny = (actual <= config.ftol * cost) & (predicted <= config.ftol * cost)
+        tiny = trial.resolved | ((actual <= config.ftol * cost) & (predicted <= config.ftol * cost))
         status = jnp.where((status == 0) & accept & ~first & tiny, Status.CONVERGED_COST, status)
         status = jnp.where((status == 0) & accept & (cost == 0), Status.CONVERGED_COST, status)
         status = jnp.where((status == 0) & accept & gradient_small(rw, N, x), Status.CONVERGED_GRADIENT, status)

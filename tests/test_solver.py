@@ -38,6 +38,26 @@ def test_linear_least_squares_matches_the_normal_equations():
     np.testing.assert_allclose(least_squares(fun, np.zeros(4), args=(A, b)).x_best, exact, rtol=1e-6, atol=1e-8)
 
 
+def linear(x, A, b):
+    return A @ x - b
+
+
+def test_tight_tolerances_reach_working_precision_not_a_lucky_rounding():
+    # Near the minimum the change of S is below what float64 resolves in S; the old rule (take a
+    # step only when the computed change is > 0) stopped 4 of these 20 fits up to 6e-11 from the
+    # solution, by the sign of a rounding error.  Steps within the resolution are now taken and
+    # reported as converged (issue 16).
+    tight = SolverConfig(ftol=1e-15, xtol=1e-15, gtol=1e-15)
+    for seed in range(20):
+        rng = np.random.default_rng(seed)
+        A = rng.normal(size=(40, 5)) * np.array([1.0, 10.0, 100.0, 0.1, 1.0])
+        b = 3.0 * rng.normal(size=40)
+        exact = np.linalg.lstsq(A, b, rcond=None)[0]
+        got = least_squares(linear, np.zeros(5), args=(A, b), config=tight)
+        assert got.converged[0], (seed, got.statuses())
+        assert np.linalg.norm(got.x_best - exact) <= 1e-12 * np.linalg.norm(exact), seed
+
+
 def nan_outside(x):
     # Defined only for x[0] > 0: restarts that start elsewhere fail without stopping the others.
     r = jnp.stack([jnp.log(x[0]) - 1.0, x[1] - 2.0])
