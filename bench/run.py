@@ -460,8 +460,8 @@ def report(results: dict, path: Path, plot: str | None) -> str:
             "notes' scipy (240 and 468 ms there); here scipy's finite differences call mbcal's compiled",
             "residual (~130 ms for either problem), and the column *the floor's ratio over scipy FD* shows",
             "what the hand-written floor itself reaches against it in the same run.  Each time here is",
-            f"the median of {SEED_REPEATS} warm runs, the notes' own measure (the best of a few runs",
-            "caught the processor before it had settled: 4.6 ms for a loop whose median is 3.6 ms).",
+            f"the median of {SEED_REPEATS} warm runs, the notes' own measure, after 0.3 s of untimed runs",
+            "(the best of a few runs caught the processor before it had settled).",
             "",
         ]
         rows = []
