@@ -45,9 +45,9 @@ _CPU_OPTIONS: dict[str, Any] = {
     "xla_cpu_use_fusion_emitters": False,
     "xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_INDIVIDUAL_DOT",
 }
-# The jaxlib these options were measured with: an XLA that does not know an option refuses the
-# compile, so older ones get none (a newer one keeps them; its tests would show a rename).
-_OPTIONS_SINCE = (0, 10)
+# The first jaxlib each option is given to (measured there): an XLA that does not know an option
+# refuses the compile.  The emitter option is older than mbcal's lowest supported JAX.
+_OPTIONS_SINCE: dict[str, tuple[int, ...]] = {"xla_cpu_experimental_ynn_fusion_type": (0, 10)}
 
 
 def _version(text: str) -> tuple[int, ...]:
@@ -61,19 +61,23 @@ def _version(text: str) -> tuple[int, ...]:
 @functools.lru_cache(maxsize=1)
 def compiler_options() -> dict[str, Any]:
     """The XLA options :func:`jit` gives mbcal's programs: :data:`_CPU_OPTIONS` on the CPU backend
-    with jaxlib ≥ 0.10 (none on others), less any option the user sets in ``XLA_FLAGS`` (theirs wins), none at all
-    with ``MBCAL_XLA_OPTIONS=off``.  Part of the compiled program's identity, so the persistent
-    compilation cache (:mod:`mbcal.cache`) keys on them."""
+    (none on others; YNNPACK's from jaxlib 0.10, :data:`_OPTIONS_SINCE`), less any option the
+    user sets in ``XLA_FLAGS`` (theirs wins), none at all with ``MBCAL_XLA_OPTIONS=off``.  Part
+    of the compiled program's identity, so the persistent compilation cache (:mod:`mbcal.cache`)
+    keys on them."""
     if os.environ.get("MBCAL_XLA_OPTIONS", "").lower() in ("0", "off", "no", "false"):
         return {}
     if jax.default_backend() != "cpu":
         return {}
     import jaxlib
 
-    if _version(jaxlib.__version__) < _OPTIONS_SINCE:
-        return {}
+    version = _version(jaxlib.__version__)
     flags = os.environ.get("XLA_FLAGS", "")
-    return {name: value for name, value in _CPU_OPTIONS.items() if name not in flags}
+    return {
+        name: value
+        for name, value in _CPU_OPTIONS.items()
+        if name not in flags and version >= _OPTIONS_SINCE.get(name, ())
+    }
 
 
 def _malloc_trim() -> Callable[[], Any] | None:

@@ -173,6 +173,15 @@ def test_mbcal_programs_take_xla_options_only_for_themselves(monkeypatch):
                 monkeypatch.setenv(k, v)
             compiler_options.cache_clear()
             assert compiler_options() == (expected if jax.default_backend() == "cpu" else {})
+        # An XLA that does not know an option refuses the compile: YNNPACK's only from jaxlib 0.10.
+        import jaxlib
+
+        monkeypatch.delenv("XLA_FLAGS", raising=False)
+        monkeypatch.delenv("MBCAL_XLA_OPTIONS", raising=False)
+        monkeypatch.setattr(jaxlib, "__version__", "0.9.1")
+        compiler_options.cache_clear()
+        older = {"xla_cpu_use_fusion_emitters": False}
+        assert compiler_options() == (older if jax.default_backend() == "cpu" else {})
     finally:
         monkeypatch.undo()
         compiler_options.cache_clear()
