@@ -28,14 +28,19 @@ CAMERA_TRUTH = {
 }
 
 
-def best_of(fn: Callable[[], object], repeats: int) -> float:
-    """The shortest of ``repeats`` timed calls (seconds): the least disturbed by the machine."""
+def _times(fn: Callable[[], object], repeats: int) -> list[float]:
+    """Wall times (seconds) of ``repeats`` calls of ``fn``."""
     out = []
     for _ in range(repeats):
         t0 = time.perf_counter()
         fn()
         out.append(time.perf_counter() - t0)
-    return min(out)
+    return out
+
+
+def best_of(fn: Callable[[], object], repeats: int) -> float:
+    """The shortest of ``repeats`` timed calls (seconds): the least disturbed by the machine."""
+    return min(_times(fn, repeats))
 
 
 def median_of(fn: Callable[[], object], repeats: int, warmup_s: float = 0.3) -> float:
@@ -48,12 +53,7 @@ def median_of(fn: Callable[[], object], repeats: int, warmup_s: float = 0.3) -> 
     while calls < 3 or time.perf_counter() - start < warmup_s:
         fn()
         calls += 1
-    out = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        out.append(time.perf_counter() - t0)
-    return statistics.median(out)
+    return statistics.median(_times(fn, repeats))
 
 
 def cpu_name() -> str:
