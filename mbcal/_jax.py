@@ -41,9 +41,18 @@ __all__ = ["jax", "jnp", "jit", "compiler_options", "to_device", "on_host", "rel
 # single matrix products stay with YNNPACK ("individual dot"): without it the dense solver's
 # 100-view JᵀJ (10,796 × 609) ran ~15 % slower; the structured solver and the camera calibration
 # were unchanged (within 2 %).
+#
+# XLA's tree-reduction rewriter splits every sum over more than 32 elements (Σr² over 96 or 168
+# residuals, the finiteness test of JᵀJ) into a reduce-window and a second reduce, for accuracy on
+# GPUs; on the CPU each reduce-window became a kernel of its own that LLVM took ~30 ms of CPU to
+# compile (five in the arm's solver).  Without the rewrite XLA:CPU sums with vector accumulators
+# in one pass: the arm's compile 0.64 → 0.56 s, the room's 0.54 → 0.51 s, the warm solves and the
+# structured solver at 30 and 1,000 views unchanged (A/B, 2 cores); float64 sums of up to a few
+# hundred thousand terms lose nothing a fit can see.
 _CPU_OPTIONS: dict[str, Any] = {
     "xla_cpu_use_fusion_emitters": False,
     "xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_INDIVIDUAL_DOT",
+    "xla_disable_hlo_passes": "tree_reduction_rewriter",
 }
 # The first jaxlib each option is given to (measured there): an XLA that does not know an option
 # refuses the compile.  The emitter option is older than mbcal's lowest supported JAX.
