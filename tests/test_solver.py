@@ -149,15 +149,20 @@ def test_restart_loop_is_vmap_of_a_while_loop_bit_for_bit():
 def test_mbcal_programs_take_xla_options_only_for_themselves(monkeypatch):
     # mbcal's programs get its XLA options (compile time, issue 16) unless the user's XLA_FLAGS
     # names the option or MBCAL_XLA_OPTIONS=off; nested in a user's transformation they are plain.
+    import os
+
     from jax import export
 
     from mbcal._jax import compiler_options, jax, jit
 
     try:
+        # Two usable cores: XLA's kernels go to LLVM as two modules (its own split is 32).
+        monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
         ours = {
             "xla_cpu_use_fusion_emitters": False,
             "xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_INDIVIDUAL_DOT",
             "xla_disable_hlo_passes": "tree_reduction_rewriter",
+            "xla_cpu_parallel_codegen_split_count": 2,
         }
         for env, expected in [
             ({}, ours),
@@ -167,7 +172,7 @@ def test_mbcal_programs_take_xla_options_only_for_themselves(monkeypatch):
             ),
             (
                 {"XLA_FLAGS": "--xla_cpu_use_fusion_emitters=true --xla_cpu_experimental_ynn_fusion_type="},
-                {"xla_disable_hlo_passes": "tree_reduction_rewriter"},
+                {"xla_disable_hlo_passes": "tree_reduction_rewriter", "xla_cpu_parallel_codegen_split_count": 2},
             ),
             ({"XLA_FLAGS": "--xla_disable_hlo_passes=cse"}, {k: v for k, v in ours.items() if "passes" not in k}),
             ({"MBCAL_XLA_OPTIONS": "off"}, {}),
@@ -185,8 +190,16 @@ def test_mbcal_programs_take_xla_options_only_for_themselves(monkeypatch):
         monkeypatch.delenv("MBCAL_XLA_OPTIONS", raising=False)
         monkeypatch.setattr(jaxlib, "__version__", "0.9.1")
         compiler_options.cache_clear()
-        older = {k: v for k, v in ours.items() if "ynn" not in k}
+        older = {k: v for k, v in ours.items() if "ynn" not in k and "split" not in k}
         assert compiler_options() == (older if jax.default_backend() == "cpu" else {})
+        # 32 cores or more keep XLA's own split.
+        monkeypatch.undo()
+        monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(64)), raising=False)
+        monkeypatch.delenv("XLA_FLAGS", raising=False)
+        monkeypatch.delenv("MBCAL_XLA_OPTIONS", raising=False)
+        compiler_options.cache_clear()
+        many = {k: v for k, v in ours.items() if "split" not in k}
+        assert compiler_options() == (many if jax.default_backend() == "cpu" else {})
     finally:
         monkeypatch.undo()
         compiler_options.cache_clear()
