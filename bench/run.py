@@ -526,10 +526,20 @@ def report(results: dict, path: Path, plot: str | None) -> str:
             "not touched, and an option set in `XLA_FLAGS` wins); vmap of the Marquardt loop re-batched",
             "the traced body until every carried field was batched (4–5 passes over it): the restarts",
             "now start batched and the loop is written once for all of them",
-            "(`mbcal.solver.restart_loop`), trace + lower 0.43 → 0.32 s.  Tried without gain:",
-            "`xla_backend_optimization_level` 1–2 (the arm's solve 2× slower),",
-            "`xla_llvm_disable_expensive_passes`, fewer codegen splits, the 6 × 6 block inverses of",
-            "the structured solver by LAPACK or by columns.",
+            "(`mbcal.solver.restart_loop`), trace + lower 0.43 → 0.32 s; XLA's tree-reduction",
+            "rewrite turned every sum over more than 32 terms (Σr², the finiteness test) into a",
+            "reduce-window that LLVM compiled in ~30 ms of CPU each: off for mbcal's programs, the",
+            "arm's compile 0.64 → 0.56 s, the room's 0.54 → 0.51 s; and XLA hands the kernels to",
+            "LLVM as one module per usable core instead of 32 (each module has a fixed cost): 0.56 →",
+            "0.53 s and 0.53 → 0.50 s.  Of the arm's trace + lower,",
+            "~0.23 s is paid once per process (a second problem in the same process traces and lowers",
+            "in 0.16 s): JAX tracing its own jitted `jax.numpy` operations for the first time, and",
+            "jaxlib's LAPACK set-up for the Cholesky step, which imports `scipy.linalg` (~0.07 s).",
+            "Tried without gain: `xla_backend_optimization_level` 0–1 (compile −0.11 / −0.37 s, the",
+            "arm's solve 1.2× / 2.5× slower), `xla_llvm_disable_expensive_passes`, region analysis",
+            "in copy insertion, the 6 × 6 block inverses of the structured solver by LAPACK or by columns; the",
+            "dense step without LAPACK (an unrolled or a column-wise Cholesky: lowering −0.11 s, XLA's",
+            "compile +0.28–0.37 s); `jax.lax` primitives for the model's arithmetic (trace +0.03 s).",
             "",
         ]
         rows = []
@@ -631,7 +641,11 @@ def report(results: dict, path: Path, plot: str | None) -> str:
             "",
             f"{n['total']} runs (27 problems × 2 starts); a run counts when every parameter has at least",
             "6 correct significant digits against the certified values.  *default*: each solver's own",
-            "default tolerances; *tight*: ftol = xtol = gtol = 1e-15 for all.",
+            "default tolerances; *tight*: ftol = xtol = gtol = 1e-15 for all.  mbcal's *total time*",
+            "includes compiling each problem's solver, unless JAX's persistent compilation cache",
+            "(`mbcal.cache`, switched on in this process once the seed section has built its problems)",
+            "holds it from an earlier run: 8.6–9.7 s compiling (a first run, or `--only nist`), 3.5 s",
+            "from the cache (default tolerances).",
             "",
         ]
         rows = []
@@ -670,6 +684,21 @@ def keep_other_sections(text: str, path: Path) -> str:
     return text
 
 
+# What XLA's own per-kernel profile (jax.profiler) of the arm's loop showed (issue 16, measured by
+# hand, not by this script).
+ARM_PROFILE = (
+    "  XLA's per-kernel profile of one iteration (~1.1 ms): over 40 % is one kernel, the tangents of "
+    "the 5 hand points (64 restarts × 7 unknowns × 10 attitudes × 15 coordinates), into which "
+    "XLA:CPU's classic emitter fuses the whole kinematic chain and its tangents, recomputed for "
+    "each coordinate of each point.  Tried and dropped: keeping the chain in memory (its end "
+    "transform, every joint's, or the points as a matrix product): 16–21 ms, slower; "
+    "cos(q + offset) from the sines and cosines of each: 19.5 ms; XLA's newer fusion "
+    "emitters, which avoid the recomputation: 5.7 ms warm (and 9 iterations instead of 11, "
+    "rounding), but +0.4 s of compile on every first call; a Cholesky step without LAPACK: "
+    "9.1 ms warm, +0.28 s of compile."
+)
+
+
 def notes(results: dict) -> list[str]:
     out = []
     for r in results.get("seed", []):
@@ -689,7 +718,7 @@ def notes(results: dict) -> list[str]:
                 "the restarts still running, 16 at a time (the arm's slowest restart takes 11 "
                 "iterations, the median 6): the arm's warm solve ~13 → ~10 ms, but the nested loop "
                 "raised its XLA compile 0.69 → 0.89 s (the room's 0.58 → 0.76 s), against the "
-                "first-call goal."
+                "first-call goal." + (ARM_PROFILE if r["problem"] == "arm" else "")
             )
     for r in results.get("startup", []):
         first = r["trace_s"] + r["compile_s"] + r["run_s"]
