@@ -734,19 +734,27 @@ def notes(results: dict) -> list[str]:
     return out
 
 
+SECTIONS = ("seed", "startup", "scaling", "nist")
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument(
         "--only",
         nargs="+",
-        choices=["seed", "startup", "scaling", "nist"],
-        default=["seed", "startup", "scaling", "nist"],
+        choices=SECTIONS,
+        default=list(SECTIONS),
+        help="run only these parts; without --out a partial run prints its text and writes no page "
+        "(it would replace this script's whole section of docs/performance.md)",
     )
     parser.add_argument("--repeats", type=int, default=5, help="timed repeats (best of)")
     parser.add_argument("--quick", action="store_true", help="small scaling sizes only")
-    parser.add_argument("--out", type=Path, default=ROOT / "docs" / "performance.md")
+    parser.add_argument("--out", type=Path, default=None, help="page to write (default: docs/performance.md)")
     parser.add_argument("--json", type=Path, default=None, help="also write the raw numbers as JSON")
     args = parser.parse_args(argv)
+    partial = args.out is None and set(args.only) != set(SECTIONS)
+    if args.out is None:
+        args.out = Path(tempfile.mkdtemp()) / "performance.md" if partial else ROOT / "docs" / "performance.md"
     results: dict = {}
     if "seed" in args.only:
         results["seed"] = bench_seed(SEED_REPEATS)
@@ -767,7 +775,10 @@ def main(argv=None) -> int:
 
         atomic_write(args.json, json.dumps(results, indent=1, default=float) + "\n")
     print(text)
-    print(f"\nwrote {args.out}", file=sys.stderr)
+    if partial:
+        print("\na partial run: docs/performance.md left as it was (pass --out to write a page)", file=sys.stderr)
+    else:
+        print(f"\nwrote {args.out}", file=sys.stderr)
     return 0
 
 
