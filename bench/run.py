@@ -752,9 +752,14 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, default=None, help="page to write (default: docs/performance.md)")
     parser.add_argument("--json", type=Path, default=None, help="also write the raw numbers as JSON")
     args = parser.parse_args(argv)
-    partial = args.out is None and set(args.only) != set(SECTIONS)
-    if args.out is None:
-        args.out = Path(tempfile.mkdtemp()) / "performance.md" if partial else ROOT / "docs" / "performance.md"
+    if args.out is not None or set(args.only) == set(SECTIONS):
+        return run_parts(args, args.out or ROOT / "docs" / "performance.md", partial=False)
+    with tempfile.TemporaryDirectory() as scratch:  # the page and its plot, dropped afterwards
+        return run_parts(args, Path(scratch) / "performance.md", partial=True)
+
+
+def run_parts(args: argparse.Namespace, out: Path, partial: bool) -> int:
+    """The parts in ``args.only``, their section written to ``out``."""
     results: dict = {}
     if "seed" in args.only:
         results["seed"] = bench_seed(SEED_REPEATS)
@@ -763,13 +768,13 @@ def main(argv=None) -> int:
     plot = None
     if "scaling" in args.only:
         results["scaling"] = bench_scaling(max(1, args.repeats // 2), args.quick)
-        image = args.out.parent / "images" / "scaling.png"
+        image = out.parent / "images" / "scaling.png"
         image.parent.mkdir(parents=True, exist_ok=True)
         scaling_plot(results["scaling"], image)
-        plot = os.path.relpath(image, args.out.parent)
+        plot = os.path.relpath(image, out.parent)
     if "nist" in args.only:
         results["nist"] = bench_nist()
-    text = report(results, args.out, plot)
+    text = report(results, out, plot)
     if args.json:
         from mbcal.outputs import atomic_write
 
@@ -778,7 +783,7 @@ def main(argv=None) -> int:
     if partial:
         print("\na partial run: docs/performance.md left as it was (pass --out to write a page)", file=sys.stderr)
     else:
-        print(f"\nwrote {args.out}", file=sys.stderr)
+        print(f"\nwrote {out}", file=sys.stderr)
     return 0
 
 
