@@ -74,7 +74,8 @@ def browser():
         if os.environ.get("MBCAL_REQUIRE_BROWSER"):
             pytest.fail(missing)
         pytest.skip(missing)
-    sync_api = pytest.importorskip("playwright.sync_api")
+    from playwright import sync_api  # in the test extra: a missing package is an error, not a skip
+
     with sync_api.sync_playwright() as p:
         b = p.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"])
         yield b

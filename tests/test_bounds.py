@@ -160,7 +160,8 @@ def test_an_inactive_bound_changes_nothing_but_the_program():
 
 
 def test_active_bounds_give_the_constrained_optimum_and_every_iterate_stays_inside():
-    scipy_optimize = pytest.importorskip("scipy.optimize")
+    import scipy.optimize as scipy_optimize
+
     seen = []
 
     def watched(x, t, y):
@@ -256,7 +257,7 @@ def test_the_others_and_their_covariance_are_those_with_the_bounded_one_held(lim
 
 
 def test_the_report_names_the_active_bound(held):
-    jsonschema = pytest.importorskip("jsonschema")
+    import jsonschema
 
     report = json.loads(json.dumps(held.to_json()))
     assert report["active_bounds"] == [{"name": "room.x", "bound": "upper", "limit": 0.01, "unit": "m"}]

@@ -85,7 +85,8 @@ def assert_jacobian_close(J: np.ndarray, reference: np.ndarray) -> None:
 def test_the_chain_defaults_to_the_joints_between_the_world_and_the_target(urdf_arm, seed_model):
     assert urdf_arm.joints == [f"{j}.q" for j in JOINTS]
     assert urdf_arm.fast and urdf_arm.target.endswith("tool_center") and urdf_arm.what == "frame"
-    np.testing.assert_allclose(urdf_arm.lower[0], -2.9) and np.testing.assert_allclose(urdf_arm.upper[3], 0.5)
+    np.testing.assert_allclose(urdf_arm.lower[0], -2.9)
+    np.testing.assert_allclose(urdf_arm.upper[3], 0.5)
     assert Kinematics(seed_model, "hand.tip").joints == ["torso.q", *(f"arm.q{i}" for i in range(1, 8))]
     by_frame = Kinematics(seed_model, "hand.tip", chain="shoulder_flexion, elbow")
     assert by_frame.joints == ["arm.q1", "arm.q4"]

@@ -21,7 +21,9 @@ from mbcal.range.readers import write_depth_png
 from mbcal.range.scans import Scan, depth_camera, depth_to_points
 from mbcal.range.simulate import add_depth_noise, render_depth
 
-ROOM = Path("models/teleexistence.mdl").resolve()
+from conftest import MODELS
+
+ROOM = MODELS / "teleexistence.mdl"
 
 
 def _model_file(

@@ -207,7 +207,8 @@ def test_the_overhead_bench_runs_on_a_tiny_size_and_writes_its_section(tmp_path)
     assert "| 0 / 0 |" in text
     results = json.loads(proc.stdout)
     assert abs(results["warm"]["rms"] - results["warm"]["rms_opencv"]) < 1e-3
-    assert results["cold"]["second"]["first_s"] < results["cold"]["first"]["first_s"]
+    # The second process takes the traced programs from the cache the first one wrote.
+    assert results["cold"]["second"]["traces"] < results["cold"]["first"]["traces"]
 
 
 def test_whole_scenes_from_the_compiled_program_match_the_modeler_run_op_by_op(camera):

@@ -15,7 +15,9 @@ from mbcal.errors import MbcalError, MeasurementFileError
 from mbcal.range.readers import read_cloud, read_depth, write_depth_png, write_pcd, write_ply, write_xyz
 from mbcal.range.scans import Scan, depth_to_points, edge_mask, load_scan, voxel_downsample
 
-ROOM = "models/room_depth.mdl"
+from conftest import MEASUREMENTS, MODELS
+
+ROOM = str(MODELS / "room_depth.mdl")
 
 
 @pytest.fixture
@@ -240,7 +242,7 @@ def test_voxel_downsample():
 
 def test_load_scan_depth_image_needs_depth_camera(tmp_path):
     write_depth_png(tmp_path / "d.png", np.ones((4, 4)))
-    model = mbcal.load_model("models/teleexistence.mdl")
+    model = mbcal.load_model(MODELS / "teleexistence.mdl")
     with pytest.raises(MeasurementFileError, match="depth camera"):
         load_scan(tmp_path / "d.png", model)
     with pytest.raises(MeasurementFileError, match="212 × 120"):
@@ -294,7 +296,7 @@ def test_mixed_image_and_range():
 
     model = mbcal.load_model(ROOM)
     truth = {"room.x": 0.012, "room.y": -0.01, "room.z": 0.006, "room.yaw": np.radians(1.2)}
-    plan = mbcal.read_measurements("measurements/room_plan.csv", model)
+    plan = mbcal.read_measurements(MEASUREMENTS / "room_plan.csv", model)
     images = mbcal.simulate(model, plan.subset([i < 12 for i in range(len(plan))]), truth, seed=1)
     info = depth_camera(model)
     pts, _, _ = depth_to_points(add_depth_noise(render_depth(model, truth), 2e-3, seed=2), info)

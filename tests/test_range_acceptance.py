@@ -4,8 +4,6 @@ defaults: every estimated parameter within 3σ of the truth, for each of 20 seed
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -15,7 +13,9 @@ from mbcal.range.readers import write_depth_png
 from mbcal.range.scans import load_scan
 from mbcal.range.simulate import add_depth_noise, render_depth
 
-ROOM = Path("models/teleexistence.mdl").resolve()
+from conftest import MODELS
+
+ROOM = MODELS / "teleexistence.mdl"
 # The room's depth camera of models/room_depth.mdl at a quarter of its pixels (affordable in CI).
 SMALL = f"""include "{ROOM}"
 frame tripod at look_at(eye = (0.1 m, 0.05 m, 1.45 m), target = (0, 0.8 m, 1.1 m)) {{

@@ -14,7 +14,9 @@ from mbcal.range.fit import scan_measurements, scan_world_points
 from mbcal.range.readers import write_depth_png, write_xyz
 from mbcal.range.scans import Scan, load_scan
 
-ROOM = "models/room_depth.mdl"
+from conftest import MEASUREMENTS, MODELS
+
+ROOM = str(MODELS / "room_depth.mdl")
 TRUTH = {"room.x": 0.012, "room.y": -0.01, "room.z": 0.006, "room.yaw": np.radians(1.2)}
 
 
@@ -50,7 +52,7 @@ def test_solve_clicks_and_a_depth_png_together(tmp_path, capsys):
     from mbcal.range.simulate import add_depth_noise, render_depth
 
     model = mbcal.load_model(ROOM)
-    plan = mbcal.read_measurements("measurements/room_plan.csv", model)
+    plan = mbcal.read_measurements(MEASUREMENTS / "room_plan.csv", model)
     clicks = mbcal.simulate(model, plan.subset([i < 12 for i in range(len(plan))]), TRUTH, seed=1)
     mbcal.write_measurements(clicks, tmp_path / "clicks.csv")
     write_depth_png(tmp_path / "depth.png", add_depth_noise(render_depth(model, TRUTH), 1e-3, 1e-3, seed=2))

@@ -7,6 +7,7 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import jax
 import numpy as np
 import pytest
 
@@ -14,6 +15,7 @@ import mbcal
 from mbcal.api import _point_uncertainties
 from mbcal.errors import MbcalError
 from mbcal.measurements.sets import measurements_from_records
+from mbcal.modeling import modeler
 from mbcal.observability import _largest_across
 from mbcal.solver import SolverConfig
 from mbcal.workflows.cameras import CLOSED_FORM_LAMBDA, calibrate_cameras, simulate_views
@@ -76,9 +78,24 @@ def test_the_predicted_values_from_a_residual_with_correlated_noise_are_the_mode
 def test_point_uncertainties_are_computed_when_read_and_equal_computing_them_at_once(calibrated):
     _model, _data, cc = calibrated
     result = cc.result
+    assert result.points._value is None  # nothing computed before the first read
     eager = _point_uncertainties(result.problem, result.x, result.covariance, None, None)
     lazy = result.points
     assert len(lazy) == len(eager) > 0
+    assert lazy._value is not None
+    # Against first-order propagation written out here: Σ_p = J_p Σ_x J_pᵀ, J_p the Jacobian of the
+    # point's world position (modeler(D, param(p, x)) by jax.jacfwd) in its configuration.
+    problem = result.problem
+    configs = list(problem.params.configurations)
+    for k in range(0, len(lazy), 37):
+        a = lazy[k]
+        c = configs.index(a.configuration)
+        J = np.asarray(
+            jax.jacfwd(lambda x, c=c, name=a.point: modeler(problem.model, problem.params.param(x)[c]).point(name))(
+                result.x
+            )
+        )
+        np.testing.assert_allclose(a.covariance, J @ result.covariance @ J.T, rtol=1e-9, atol=1e-18)
     for a, b in zip(lazy, eager):
         assert (a.point, a.configuration, a.camera) == (b.point, b.configuration, b.camera)
         np.testing.assert_allclose(a.covariance, b.covariance, rtol=1e-12, atol=0)

@@ -155,7 +155,8 @@ def test_a_block_seen_along_one_line_is_named_not_crashed():
 
 @pytest.mark.slow
 def test_dubrovnik_converges_to_the_cost_scipy_reaches(dubrovnik):
-    scipy_optimize = pytest.importorskip("scipy.optimize")
+    import scipy.optimize as scipy_optimize
+
     bal, fun, args = dubrovnik
     structure = bal_structure(bal)
     check_structure(fun, bal.x0, structure, args)  # every row depends on its point and camera only
@@ -234,7 +235,6 @@ def test_bal_files_with_mistakes_get_located_errors(tmp_path):
 
 @pytest.mark.slow
 def test_the_scale_bench_runs_tiny(tmp_path):
-    pytest.importorskip("cv2")
     shared_data("bal", "dubrovnik-3-7-pre.txt")
     out = tmp_path / "performance.md"
     proc = run_python("bench/scale.py", "--quick", "--out", str(out))

@@ -1,6 +1,7 @@
 """The studio end to end in Chromium: the seed's room calibration clicked by hand in the page
 (photos rendered at known true values), and Zhang's real photograph of his target (his
-published pose for view 1).  The walk-through's screenshots in docs/images/ are taken here."""
+published pose for view 1).  The walk-through's screenshots in docs/images/ are taken here
+(with MBCAL_DOC_IMAGES=docs/images; otherwise into a temporary folder)."""
 
 from __future__ import annotations
 
@@ -14,18 +15,25 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_studio import click_point, open_page
+
+from mbcal.studio.engine import Engine
+from mbcal.studio.server import StudioServer
 
 from conftest import ROOT, run_python, shared_data
 
-pytest.importorskip("fastapi", reason="the studio's extra: pip install 'mbcal[studio]'")
-pytest.importorskip("uvicorn", reason="the studio's extra: pip install 'mbcal[studio]'")
+# The screenshots go to a temporary folder; `MBCAL_DOC_IMAGES=docs/images` writes them over the
+# walk-through's pictures in docs/studio.md instead (a test run never changes the checkout unasked).
+IMAGES_FOLDER = os.environ.get("MBCAL_DOC_IMAGES")
 
-from test_studio import click_point, open_page  # noqa: E402
 
-from mbcal.studio.engine import Engine  # noqa: E402
-from mbcal.studio.server import StudioServer  # noqa: E402
+@pytest.fixture(scope="module")
+def images(tmp_path_factory) -> Path:
+    folder = Path(IMAGES_FOLDER) if IMAGES_FOLDER else tmp_path_factory.mktemp("screenshots")
+    folder = folder if folder.is_absolute() else ROOT / folder
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder
 
-IMAGES = ROOT / "docs" / "images"
 
 pytestmark = pytest.mark.slow
 
@@ -52,7 +60,7 @@ def _start_cli(args: list[str], cwd: Path) -> tuple[subprocess.Popen, str]:
     raise AssertionError(f"mbcal studio printed no URL (exit {proc.returncode})")
 
 
-def test_the_room_clicked_in_the_page_is_found_within_three_sigma(browser, tmp_path):
+def test_the_room_clicked_in_the_page_is_found_within_three_sigma(browser, images, tmp_path):
     from mbcal.language import load_model
     from mbcal.modeling import modeler, parameter_vector
     from mbcal.render.views import render_view, save_png
@@ -73,8 +81,7 @@ def test_the_room_clicked_in_the_page_is_found_within_three_sigma(browser, tmp_p
         page = open_page(browser, url, 1900, 1150)
         page.wait_for_selector("svg[data-photo='p1'] .wire path", timeout=60_000)
         page.wait_for_function("() => (window.studio.solids || 0) >= 2", timeout=60_000)  # both translucent solids
-        IMAGES.mkdir(parents=True, exist_ok=True)
-        page.screenshot(path=str(IMAGES / "studio-start.png"))
+        page.screenshot(path=str(images / "studio-start.png"))
         # 8 points in both photos: 16 pairs, at the true projections plus 1 px noise.
         points = [
             "room.valve.lever.hub",
@@ -101,7 +108,7 @@ def test_the_room_clicked_in_the_page_is_found_within_three_sigma(browser, tmp_p
         page.click("#observe")
         page.wait_for_selector("#verdict")
         assert page.inner_text("#verdict").startswith("observable: rank 6 of 6")
-        page.screenshot(path=str(IMAGES / "studio-clicked.png"))
+        page.screenshot(path=str(images / "studio-clicked.png"))
         n, solids = page.evaluate("() => [window.studio.redraws, window.studio.solids || 0]")
         page.click("#solve")
         page.wait_for_selector("body[data-solved='1']", timeout=240_000)
@@ -109,7 +116,7 @@ def test_the_room_clicked_in_the_page_is_found_within_three_sigma(browser, tmp_p
         # The model is drawn at the estimate: wireframes, then both translucent solids.
         page.wait_for_function("(n) => window.studio.redraws > n", arg=n)
         page.wait_for_function("(n) => window.studio.solids >= n + 2", arg=solids, timeout=60_000)
-        page.screenshot(path=str(IMAGES / "studio-solved.png"))
+        page.screenshot(path=str(images / "studio-solved.png"))
         page.select_option("#format", "csv")
         page.click("#save")
         page.wait_for_selector("body[data-saved]", timeout=120_000)
@@ -158,7 +165,7 @@ def _zhang_files():
     return (fx, skew, fy, cx, cy, k1, k2), R, t, model_xy, image_uv
 
 
-def test_zhangs_photograph_gives_his_published_pose_of_view_1(browser, tmp_path):
+def test_zhangs_photograph_gives_his_published_pose_of_view_1(browser, images, tmp_path):
     from mbcal.geometry.transforms import rpy_from_matrix
 
     (fx, skew, fy, cx, cy, k1, k2), R, t, model_xy, image_uv = _zhang_files()
@@ -204,7 +211,7 @@ def test_zhangs_photograph_gives_his_published_pose_of_view_1(browser, tmp_path)
         page.click("#solve")
         page.wait_for_selector("body[data-solved='1']", timeout=240_000)
         report = page.evaluate("() => window.studio.report")
-        page.screenshot(path=str(IMAGES / "studio-zhang.jpg"), quality=80)
+        page.screenshot(path=str(images / "studio-zhang.jpg"), quality=80)
         page.close()
     finally:
         srv.stop()
