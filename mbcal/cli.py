@@ -10,6 +10,7 @@ accepts the last two); 130 means interrupted.
 from __future__ import annotations
 
 import argparse
+import fnmatch
 import json
 import math
 import os
@@ -20,7 +21,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, NoReturn
 
 # The command line's own process (NumPy not loaded yet): one BLAS thread unless the user says
 # otherwise.  The analysis's SVDs are small, and OpenBLAS threads that spin beside XLA's on a busy
@@ -33,8 +34,8 @@ import numpy as np  # noqa: E402
 
 from mbcal import __version__  # noqa: E402
 from mbcal.errors import MbcalError  # noqa: E402
-from mbcal.outputs import INTERRUPTED, atomic_write, check_output  # noqa: E402
-from mbcal.units import UNITS  # noqa: E402
+from mbcal.outputs import INTERRUPTED, atomic_write, check_output, check_output_folder  # noqa: E402
+from mbcal.units import LENGTH, UNITS, describe  # noqa: E402
 
 __all__ = ["main", "build_parser"]
 
@@ -81,29 +82,51 @@ def cmd_check(args: argparse.Namespace) -> int:
 # ---- scene ------------------------------------------------------------------------------------
 
 
-def parse_assignments(items: Sequence[str]) -> dict[str, float]:
-    """``NAME=VALUE[unit]`` strings → {name: SI value}; units as in models (``5cm``, ``30deg``)."""
+def _quantity(text: str):
+    """``-30deg``, ``5 cm``, ``0.2`` → (SI value, the unit's dimension or None for a plain number);
+    None when it is not a number.  Units as in models."""
+    for unit in sorted(UNITS, key=len, reverse=True):
+        number = text[: -len(unit)].strip() if text.endswith(unit) else ""
+        if number:
+            try:
+                return float(number) * UNITS[unit][0], UNITS[unit][1], unit
+            except ValueError:
+                continue
+    try:
+        return float(text), None, ""
+    except ValueError:
+        return None
+
+
+def _check_dimension(given, unit: str, name: str, option: str, expected) -> None:
+    """A value given with a unit where a parameter of another dimension is meant: an error."""
+    if given is not None and expected is not None and given != expected:
+        raise MbcalError(
+            f"{option} {name}: '{unit}' is not a unit of {name}, which is {describe(expected)}",
+            hint="give the value in a unit of its dimension, or as a plain number in SI units",
+        )
+
+
+def parse_assignments(items: Sequence[str], model=None, option: str = "--set") -> dict[str, float]:
+    """``NAME=VALUE[unit]`` strings → {name: SI value}; units as in models (``5cm``, ``30deg``).
+    With the model, a unit whose dimension is not the parameter's is an error (``lever.length=3deg``)."""
     out: dict[str, float] = {}
     for item in items:
         if "=" not in item:
-            raise MbcalError(f"--set expects NAME=VALUE, got '{item}'")
+            raise MbcalError(f"{option} expects NAME=VALUE, got '{item}'")
         name, text = (s.strip() for s in item.split("=", 1))
-        number, factor = text, 1.0
-        for unit in sorted(UNITS, key=len, reverse=True):
-            if text.endswith(unit) and text[: -len(unit)].strip():
-                candidate = text[: -len(unit)].strip()
-                try:
-                    float(candidate)
-                except ValueError:
-                    continue
-                number, factor = candidate, UNITS[unit][0]
-                break
-        try:
-            value = float(number) * factor
-        except ValueError:
-            raise MbcalError(f"--set {name}: '{text}' is not a number (units: {', '.join(UNITS)})") from None
-        if value != value or value in (float("inf"), float("-inf")):
-            raise MbcalError(f"--set {name}: value must be finite")
+        parsed = _quantity(text)
+        if parsed is None:
+            raise MbcalError(f"{option} {name}: '{text}' is not a number (units: {', '.join(UNITS)})")
+        value, dim, unit = parsed
+        if not math.isfinite(value):
+            raise MbcalError(f"{option} {name}: value must be finite")
+        if model is not None and dim is not None:
+            base = name.split("@", 1)[0]
+            matched = fnmatch.filter(model.names("param"), base) if any(ch in base for ch in "*?[") else [base]
+            for param in matched:
+                if model.has("param", param):
+                    _check_dimension(dim, unit, param, option, model.param(param).dim)
         out[name] = value
     return out
 
@@ -116,7 +139,7 @@ def cmd_scene(args: argparse.Namespace) -> int:
     if fmt not in ("glb", "gltf", "obj", "stl", "ply", "off"):
         raise MbcalError(f"cannot export '{out.suffix}': use .glb, .obj, .stl, .ply or .off")
     model = _load(args.model)
-    values = parse_assignments(args.set or [])
+    values = parse_assignments(args.set or [], model)
     scene = modeler(model, parameter_vector(model, values))
     tm = scene.to_trimesh(points=args.points)
     if fmt in ("stl", "ply", "off"):
@@ -242,6 +265,21 @@ def _say(args, text: str) -> None:
     print(text, file=stream)
 
 
+def _background(model, camera: str, path: str, option: str) -> np.ndarray:
+    """A photo to draw over: it must exist and have the camera's size."""
+    from mbcal.render.views import load_image  # lazy: rendering loads only when a picture is made
+
+    camera = model.resolve("camera", camera)
+    image = load_image(path)
+    info = model.cameras[model.camera_index(camera)]
+    if image.shape[:2] != (info.height, info.width):
+        raise MbcalError(
+            f"{option}: the background is {image.shape[1]}×{image.shape[0]} pixels but camera '{camera}' is "
+            f"{info.width}×{info.height}"
+        )
+    return image
+
+
 def _check_outputs(args, inputs) -> None:
     """Validate every output path before any work is done (nothing is lost on a bad path)."""
     for attr in ("json", "write_model", "plot", "output"):
@@ -249,9 +287,7 @@ def _check_outputs(args, inputs) -> None:
         if value and value != "-":
             check_output(value, inputs)
     if getattr(args, "overlay", None):
-        folder = Path(args.overlay)
-        if folder.exists() and not folder.is_dir():
-            raise MbcalError(f"--overlay needs a folder; {folder} is a file")
+        check_output_folder(args.overlay, "--overlay")
 
 
 # ---- solve ------------------------------------------------------------------------------------------
@@ -295,9 +331,18 @@ def cmd_solve(args: argparse.Namespace) -> int:
         sets.append(scan_measurements(model, loaded, voxel=args.voxel, max_points=args.scan_points))
         args.loss = args.loss or "cauchy"  # scans hold points of things the model does not: robust
     data = merge_measurements(sets)
-    known = parse_assignments(args.set or [])
+    known = parse_assignments(args.set or [], model)
     config = _solver_config(args)
     estimate = _estimate(model, args.estimate)
+    # The photos for the overlays, read and checked before the solve (a wrong one is found at once).
+    backgrounds = {}
+    for item in args.background or []:
+        if "=" not in item:
+            raise MbcalError(f"--background expects CAMERA=IMAGE, got '{item}'")
+        cam, path = item.split("=", 1)
+        backgrounds[cam] = _background(model, cam, path, f"--background {item}")
+    if backgrounds and not args.overlay:
+        raise MbcalError("--background is for the overlays: give --overlay DIR too")
     progress.step(f"compiling and solving {args.restarts} restarts")
     result = calibrate(
         model,
@@ -318,14 +363,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
         progress.step("drawing overlays and plots")
         if args.overlay:
             from mbcal.render.overlays import calibration_overlays  # lazy: keeps JAX out of 'mbcal check'
-            from mbcal.render.views import load_image  # lazy: rendering loads only when a picture is made
 
-            backgrounds = {}
-            for item in args.background or []:
-                if "=" not in item:
-                    raise MbcalError(f"--background expects CAMERA=IMAGE, got '{item}'")
-                cam, path = item.split("=", 1)
-                backgrounds[cam] = load_image(path)
             calibration_overlays(result, args.overlay, backgrounds=backgrounds)
         if args.plot:
             from mbcal.render.overlays import residual_plot  # lazy: keeps JAX out of 'mbcal check'
@@ -357,7 +395,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from mbcal.measurements.io import write_measurements  # lazy: keeps JAX out of 'mbcal check'
 
     model, plan = _model_and_plan(args)
-    truth = parse_assignments(args.set or [])
+    truth = parse_assignments(args.set or [], model)
     if not math.isfinite(args.noise) or args.noise < 0:
         raise MbcalError(f"--noise must be a non-negative number, got {args.noise}")
     data = simulate(model, plan, truth, noise=args.noise, seed=args.seed, drop_invisible=args.drop_invisible)
@@ -378,7 +416,7 @@ def cmd_observe(args: argparse.Namespace) -> int:
 
     model, plan = _model_and_plan(args)
     inputs = [args.model, args.plan]
-    at = parse_assignments(args.at or [])
+    at = parse_assignments(args.at or [], model, "--at")
     analysis = observe(
         model,
         plan,
@@ -402,7 +440,6 @@ def cmd_render(args: argparse.Namespace) -> int:
     from mbcal.render.views import (  # lazy: rendering loads only when a picture is made
         Layer,
         draw_overlay,
-        load_image,
         render_view,
         save_png,
         wireframe_layer,
@@ -416,17 +453,11 @@ def cmd_render(args: argparse.Namespace) -> int:
     if not model.cameras:
         raise MbcalError(f"{args.model} has no camera to render from")
     camera = model.resolve("camera", args.camera) if args.camera else model.cameras[0].name
-    scene = modeler(model, parameter_vector(model, parse_assignments(args.set or [])))
+    scene = modeler(model, parameter_vector(model, parse_assignments(args.set or [], model)))
     # The depth pass is for the wireframe's occlusion only.
     view = render_view(scene, camera, points=args.points and not args.wireframe, depth=bool(args.wireframe))
     if args.background is not None:
-        image = load_image(args.background)
-        info = model.cameras[model.camera_index(camera)]
-        if image.shape[:2] != (info.height, info.width):
-            raise MbcalError(
-                f"the background is {image.shape[1]}×{image.shape[0]} pixels but camera '{camera}' is "
-                f"{info.width}×{info.height}"
-            )
+        image = _background(model, camera, args.background, "--background")
     else:
         image = view.color
     layers = []
@@ -584,26 +615,32 @@ def cmd_studio(args: argparse.Namespace) -> int:
 # ---- kinematics -----------------------------------------------------------------------------------------
 
 
-def _quantities(text: str, option: str) -> list[float]:
-    """``0,-30deg,5cm`` → SI values, units as in models; plain numbers are SI (rad, m)."""
+def _seed(text: str) -> int:
+    """--seed: a whole number ≥ 0 (NumPy's generators take no negative seed)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number ≥ 0, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a whole number ≥ 0, got {value}")
+    return value
+
+
+def _quantities(text: str, option: str, meant: Sequence[tuple[str, Any]] = ()) -> list[float]:
+    """``0,-30deg,5cm`` → SI values, units as in models; plain numbers are SI (rad, m).  ``meant``:
+    (name, dimension) of each value, where a unit of another dimension is an error."""
     out = []
-    for item in (t.strip() for t in text.split(",")):
-        value = None
-        for unit in sorted(UNITS, key=len, reverse=True):
-            if item.endswith(unit) and item[: -len(unit)].strip():
-                try:
-                    value = float(item[: -len(unit)]) * UNITS[unit][0]
-                    break
-                except ValueError:
-                    continue
-        try:
-            value = float(item) if value is None else value
-        except ValueError:
+    for k, item in enumerate(t.strip() for t in text.split(",")):
+        parsed = _quantity(item)
+        if parsed is None:
             raise MbcalError(
                 f"{option}: '{item}' is not a number", hint=f"numbers separated by commas, units {', '.join(UNITS)}"
-            ) from None
+            )
+        value, dim, unit = parsed
         if not math.isfinite(value):
             raise MbcalError(f"{option}: values must be finite, got '{item}'")
+        if k < len(meant):
+            _check_dimension(dim, unit, meant[k][0], option, meant[k][1])
         out.append(value)
     return out
 
@@ -613,8 +650,9 @@ def cmd_kinematics(args: argparse.Namespace) -> int:
 
     _check_outputs(args, [args.model])
     model = _load(args.model)
-    kin = Kinematics(model, args.point, chain=args.chain, values=parse_assignments(args.set or []))
-    theta = np.asarray(_quantities(args.joints, "--joints")) if args.joints else kin.theta0
+    kin = Kinematics(model, args.point, chain=args.chain, values=parse_assignments(args.set or [], model))
+    meant = [(name, model.param(name).dim) for name in kin.joints]
+    theta = np.asarray(_quantities(args.joints, "--joints", meant)) if args.joints else kin.theta0
     if len(theta) != kin.n:
         raise MbcalError(
             f"--joints gives {len(theta)} values, but the chain has {kin.n}: {', '.join(kin.joints)}",
@@ -622,7 +660,7 @@ def cmd_kinematics(args: argparse.Namespace) -> int:
         )
     ik = None
     if args.ik:
-        target = _quantities(args.ik, "--ik")
+        target = _quantities(args.ik, "--ik", [(f"the target's {c}", LENGTH) for c in "xyz"])
         if len(target) != 3:
             raise MbcalError(f"--ik needs a position x,y,z, got {len(target)} values")
         ik = kin.ik(target, initial=theta, restarts=args.restarts, seed=args.seed, tolerance=args.tolerance)
@@ -726,7 +764,7 @@ def _register_commands(sub) -> None:
     p.add_argument("--sensor", metavar="NAME", help="the depth camera of depth-image scans (default: the only one)")
     _add_solver_options(p)
     p.add_argument("--restarts", type=int, default=32, metavar="N", help="random starting points (default 32)")
-    p.add_argument("--seed", type=int, default=0, metavar="S", help="seed of the starting points (default 0)")
+    p.add_argument("--seed", type=_seed, default=0, metavar="S", help="seed of the starting points (default 0)")
     p.add_argument("--loss", choices=["linear", "huber", "cauchy"], help="robust loss (default: linear)")
     p.add_argument(
         "--loss-scale", type=float, metavar="C", help="robust loss scale in σ (default 1.345 Huber, 2.385 Cauchy)"
@@ -775,7 +813,7 @@ def _register_commands(sub) -> None:
     p.add_argument(
         "--noise", type=float, default=1.0, metavar="F", help="noise in units of each σ (default 1; 0: exact)"
     )
-    p.add_argument("--seed", type=int, default=0, metavar="S", help="seed of the noise")
+    p.add_argument("--seed", type=_seed, default=0, metavar="S", help="seed of the noise")
     p.add_argument(
         "--drop-invisible",
         action="store_true",
@@ -906,7 +944,7 @@ def _register_commands(sub) -> None:
         help="starts: Zhang's solution and N-1 random ones (default: Zhang's alone, and 4 when that fit does not "
         "converge or is not consistent with the stated sigma)",
     )
-    p.add_argument("--seed", type=int, default=0, metavar="S")
+    p.add_argument("--seed", type=_seed, default=0, metavar="S")
     p.add_argument("--no-init", action="store_true", help="start from the model's nominal values, not Zhang's method")
     _structure_option(p)
     p.add_argument("--image", action="append", metavar="CONFIG=PATH", help="the image of a view, for --overlay")
@@ -932,7 +970,7 @@ def _register_commands(sub) -> None:
     )
     p.add_argument("-o", "--output", default="mbcal-demo", metavar="DIR", help="output folder (default mbcal-demo)")
     p.add_argument("--restarts", type=int, default=32, metavar="N")
-    p.add_argument("--seed", type=int, default=0, metavar="S")
+    p.add_argument("--seed", type=_seed, default=0, metavar="S")
     _quiet_option(p)
 
     p = _add(
@@ -1012,7 +1050,7 @@ def _register_commands(sub) -> None:
     p.add_argument("--damping", type=float, default=0.0, metavar="λ", help="damped J* = Jᵀ(JJᵀ + λ²I)⁻¹ (default 0)")
     p.add_argument("--ik", metavar="X,Y,Z", help="a target position in the world: solve for the joint values")
     p.add_argument("--restarts", type=int, default=16, metavar="N", help="IK starts (default 16)")
-    p.add_argument("--seed", type=int, default=0, metavar="S", help="seed of the IK starts (default 0)")
+    p.add_argument("--seed", type=_seed, default=0, metavar="S", help="seed of the IK starts (default 0)")
     p.add_argument(
         "--tolerance", type=float, default=1e-6, metavar="M", help="IK: reached within M metres (default 1e-6)"
     )
@@ -1099,7 +1137,7 @@ def _range_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--crop", type=float, default=0.10, metavar="M", help="keep points within M of the model (0.10)")
     p.add_argument("--loss", choices=["cauchy", "huber", "linear"], default="cauchy", help="robust loss (cauchy)")
     p.add_argument("--restarts", type=int, default=1, metavar="N", help="starting points (default 1)")
-    p.add_argument("--seed", type=int, default=0, metavar="S", help="seed of the starting points")
+    p.add_argument("--seed", type=_seed, default=0, metavar="S", help="seed of the starting points")
     p.add_argument("--coarse", choices=["auto", "always", "never"], default="auto", help="global alignment (auto)")
     p.add_argument("--sensor", metavar="NAME", help="the depth camera of depth images (default: the only one)")
     p.add_argument("--frame", metavar="NAME", help="frame of point clouds (default: world)")
@@ -1246,6 +1284,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return EXIT_OK
+    except OSError as err:
+        # The system refused a read or a write that the checks before the work could not foresee
+        # (a disk that filled up, a folder made read-only meanwhile): said plainly, not a traceback;
+        # the atomic writes leave no partial file behind.
+        _stop_progress()
+        where = f": {err.filename}" if err.filename else ""
+        print(f"error: {err.strerror or err}{where}", file=sys.stderr)
+        return EXIT_BAD_INPUT
     finally:
         restore()
 

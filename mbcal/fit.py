@@ -29,11 +29,19 @@ is exact linear algebra:
 With a robust loss the outliers it down-weights are expected: the test then applies to the
 measurements left after setting the outliers aside.
 
-**Weak determination.**  Among the unknowns that have a search range, a direction (in units of
-their search ranges) whose σ exceeds :data:`DEFAULT_WEAK_FRACTION` (half) of the range, priors
-included — the measurements do not narrow what the model says the value could be: the
-observability analysis's "weakly observable" — or a condition number above
-:data:`DEFAULT_MAX_CONDITION` makes the result untrustworthy too.
+**Weak determination.**  Each unknown is measured by its natural scale
+(:func:`mbcal.observability.unknown_scales`: half its search range; without one its prior σ, else
+max(1, |nominal|)) — the one yardstick the observability analysis uses too.  A direction whose σ,
+priors included, exceeds :data:`DEFAULT_WEAK_FRACTION` (half) of its range (twice the scale: the
+search range, or ± the scale of an unknown without one) — the measurements do not narrow what the
+model says the value could be: the observability analysis's "weakly observable" — or a condition
+number above :data:`DEFAULT_MAX_CONDITION` makes the result untrustworthy too.  Unknowns without a
+search range are tested as well: a distance known to within ± 70 m when its nominal value is 5 m
+is not "well determined".
+
+**Unobservable.**  When the measurements and priors together leave a direction undetermined
+(rank below the number of free unknowns: σ = ∞), the verdict says so — "not observable", never
+"well determined" — and ``accept`` does not override it: there is no estimate to accept.
 
 ``accept`` (``--accept-poor-fit``) keeps the verdict in the report but lets the result count as
 usable: for scripts that want the estimate anyway.
@@ -49,7 +57,7 @@ from typing import Any
 import numpy as np
 
 from mbcal.measurements.registry import get_model
-from mbcal.observability import Observability, ObservabilityConfig
+from mbcal.observability import Observability, ObservabilityConfig, scale_stand_ins
 from mbcal.problem import Problem
 
 
@@ -150,9 +158,11 @@ DEFAULT_THRESHOLD = 1e-3
 """p-value below which a fit is inconsistent with the stated σ (and a suspect is significant)."""
 
 DEFAULT_WEAK_FRACTION = 0.5
-"""A direction of the unknowns with a search range is weakly determined when its σ exceeds this
-fraction of the search range (the width, upper − lower): half the range, the search half-range by
-which the observability analysis calls a direction weakly observable."""
+"""A direction of the unknowns is weakly determined when its σ exceeds this fraction of its range:
+twice each unknown's scale (:func:`mbcal.observability.unknown_scales`) — the search range
+(upper − lower), or for an unknown without one ± its prior σ, else ± max(1, |nominal|).  Half the
+range is one scale: the limit by which the observability analysis calls a direction weakly
+observable."""
 
 DEFAULT_MAX_CONDITION = 1e10
 """Condition number (of the Jacobian scaled by the search half-ranges, priors included) above
@@ -175,8 +185,9 @@ class FitConfig:
         Significance level: the fit is inconsistent when P(χ² ≥ S) < threshold; suspects are
         named at the same level (Bonferroni-corrected).
     weak_fraction : float
-        A direction of the unknowns with a search range is weakly determined when its σ exceeds
-        this fraction of the range.
+        A direction of the unknowns is weakly determined when its σ exceeds this fraction of its
+        range (the search range; without one, ± the unknown's scale: see
+        :data:`DEFAULT_WEAK_FRACTION`).
     max_condition : float
         Condition number above which the estimate counts as weakly determined.
     min_group : int
@@ -229,10 +240,21 @@ class Suspect:
 @dataclass(frozen=True)
 class WeakDirection:
     """A poorly determined direction: its parameters (largest share first) and σ along it as a
-    fraction of their search ranges."""
+    fraction of their ranges (the search range; without one, ± the unknown's scale, named in
+    ``stand_ins``: :func:`mbcal.observability.scale_stand_ins`)."""
 
     names: tuple[str, ...]
     sigma: float
+    stand_ins: tuple[str, ...] = ()
+
+    def range_text(self) -> str:
+        """What ``sigma`` is a fraction of, for "σ along this direction is 707 % of …"."""
+        if not self.stand_ins:
+            return "the search range"
+        listed = "; ".join(self.stand_ins)
+        if len(self.stand_ins) == len(self.names):
+            return f"its range, ± its scale (no search range; {listed})"
+        return f"its range (the search range; without one, ± its scale: {listed})"
 
     def to_json(self) -> dict[str, Any]:
         return {"names": list(self.names), "sigma_fraction": _num(self.sigma)}
@@ -258,9 +280,18 @@ class FitVerdict:
     weak: tuple[WeakDirection, ...] = ()
     weak_fraction: float = DEFAULT_WEAK_FRACTION
     condition: float = 1.0
+    """Condition number of the covariance over the unknowns with a finite σ, in their scales; inf
+    when no free unknown has one (an unobservable problem)."""
     max_condition: float = DEFAULT_MAX_CONDITION
     accepted: bool = False
     notes: tuple[str, ...] = field(default=())
+    determined: bool = True
+    """Every free unknown determined by the measurements and priors together (the observability
+    analysis's ``observable_with_priors``): False when a direction has σ = ∞."""
+    rank: int | None = None
+    """Rank of the problem, priors included (None: not recorded)."""
+    unknowns: int | None = None
+    """Free unknowns (not held at an active bound) that the rank is compared with."""
 
     @property
     def tested(self) -> bool:
@@ -268,16 +299,23 @@ class FitVerdict:
 
     @property
     def well_determined(self) -> bool:
-        return not self.weak and not self.condition > self.max_condition
+        """Every unknown determined, no weak direction, the condition number in bounds."""
+        return self.determined and not self.weak and not self.condition > self.max_condition
 
     @property
     def trustworthy(self) -> bool:
-        """Consistent and well determined (what ``accepted`` overrides)."""
+        """Consistent and well determined (what ``accepted`` overrides, unless undetermined)."""
         return self.consistent and self.well_determined
 
     @property
     def ok(self) -> bool:
-        return self.trustworthy or self.accepted
+        """Trustworthy, or accepted — an unobservable problem is never ok: it has no estimate."""
+        return self.trustworthy or (self.accepted and self.determined)
+
+    def _undetermined_text(self) -> str:
+        if self.rank is None or self.unknowns is None:
+            return "not observable"
+        return f"not observable (rank {self.rank} of {self.unknowns})"
 
     @property
     def recommend_robust(self) -> bool:
@@ -312,12 +350,22 @@ class FitVerdict:
                     "  recommendation: the outliers explain it; solve with a robust loss (--loss huber or cauchy, "
                     "CalibrateOptions(config=SolverConfig(loss='huber'))) or remove them"
                 )
+        if not self.determined:
+            missing = (
+                f"{self.unknowns - self.rank} direction(s)"
+                if self.rank is not None and self.unknowns is not None
+                else "some directions"
+            )
+            out.append(
+                f"  {self._undetermined_text()}: {missing} of the unknowns neither the measurements nor the priors "
+                "determine (σ = ∞; see the observability section)"
+            )
         for w in self.weak:
             out.append(
-                f"  weakly determined ({', '.join(w.names)}): σ along this direction is {100 * w.sigma:.3g} % of the "
-                f"search range (threshold {100 * self.weak_fraction:g} %)"
+                f"  weakly determined ({', '.join(w.names)}): σ along this direction is {100 * w.sigma:.3g} % of "
+                f"{w.range_text()} (threshold {100 * self.weak_fraction:g} %)"
             )
-        if self.condition > self.max_condition:
+        if math.isfinite(self.condition) and self.condition > self.max_condition:
             out.append(
                 f"  ill-conditioned: condition number {self.condition:.3g} above {self.max_condition:.3g} "
                 "(the estimate is numerically fragile)"
@@ -331,11 +379,15 @@ class FitVerdict:
         if self.trustworthy:
             return "consistent and well determined" if self.chi2 is not None else "well determined"
         why = []
+        if not self.determined:
+            why.append(self._undetermined_text())
         if not self.consistent:
             why.append("the fit is inconsistent with the stated σ")
-        if not self.well_determined:
+        if self.determined and not self.well_determined:
             why.append("weakly determined")
         text = f"NOT trustworthy: {' and '.join(why)}"
+        if not self.determined:  # nothing to accept: --accept-poor-fit does not make it usable
+            return text + " (exit status 1, even with --accept-poor-fit: add measurements or fix unknowns)"
         if self.accepted:
             return text + "; accepted anyway (--accept-poor-fit)"
         return text + " (exit status 1; --accept-poor-fit accepts it)"
@@ -505,35 +557,30 @@ def _robust_scale(t: np.ndarray, d: np.ndarray, floor: bool = True) -> float:
 # ---- the verdict -------------------------------------------------------------------------------------------
 
 
-def _weak_directions(
-    obs: Observability, ranged: np.ndarray, fraction: float, coefficient_tol: float
-) -> tuple[list[WeakDirection], float]:
-    """Directions of the ranged unknowns whose σ (as a fraction of the search ranges, priors
-    included) exceeds ``fraction``, and the condition number of the observable part of the
-    covariance (every unknown, scaled as the observability analysis scales them)."""
+def _weak_directions(obs: Observability, fraction: float, coefficient_tol: float) -> tuple[list[WeakDirection], float]:
+    """Directions of the unknowns whose σ (priors included) exceeds ``fraction`` of their ranges
+    — twice their scales (the observability analysis's ``scales``: half the search range, else
+    the prior σ, else max(1, |nominal|)) — and the condition number of the observable part of the
+    covariance in the same scaled units.  Every unknown with a finite σ is tested, with a search
+    range or without: one yardstick, the observability analysis's."""
     by_blocks = getattr(obs.covariance, "weak_directions", None)
+    n = len(obs.names)
     if by_blocks is not None:  # a structured problem's covariance (mbcal.structured.BlockCovariance): no n × n matrix
-        found, condition = by_blocks(ranged, fraction, coefficient_tol)
+        found, condition = by_blocks(np.ones(n, dtype=bool), fraction, coefficient_tol)
         return [WeakDirection(names, sigma) for names, sigma in found], condition
     cov = np.asarray(obs.covariance, dtype=float)
-    finite = np.isfinite(np.diag(cov))  # the unobservable unknowns' rows and columns are inf
-    scales = np.asarray(obs.scales, dtype=float)
-    condition = 1.0
-    if np.any(finite):
-        S = scales[finite]
-        lam = np.linalg.eigvalsh(cov[np.ix_(finite, finite)] / np.outer(S, S))
-        positive = lam[lam > 0]
-        condition = float(np.sqrt(positive.max() / positive.min())) if positive.size else 1.0
-    use = finite & ranged
+    use = np.isfinite(np.diag(cov))  # the unobservable unknowns' rows and columns are inf
     out: list[WeakDirection] = []
     if not np.any(use):
-        return out, condition
-    width = 2.0 * scales[use]  # the observability analysis scales a ranged unknown by half its range
-    Cs = cov[np.ix_(use, use)] / np.outer(width, width)
+        return out, 1.0
+    scales = np.asarray(obs.scales, dtype=float)[use]
+    Cs = cov[np.ix_(use, use)] / np.outer(scales, scales)  # in scales: σ 1 is half the range
     lam, V = np.linalg.eigh((Cs + Cs.T) / 2)
-    names = [n for n, u in zip(obs.names, use) if u]
+    positive = lam[lam > 0]
+    condition = float(np.sqrt(positive.max() / positive.min())) if positive.size else 1.0
+    names = [nm for nm, u in zip(obs.names, use) if u]
     for k in np.argsort(-lam):
-        sigma = float(np.sqrt(max(lam[k], 0.0)))
+        sigma = float(np.sqrt(max(lam[k], 0.0))) / 2.0  # a fraction of the range: twice the scale
         if not sigma > fraction:
             break
         v = V[:, k]
@@ -544,16 +591,24 @@ def _weak_directions(
 
 
 def _weak_part(
-    obs: Observability, ranged: np.ndarray, config: FitConfig, observability: ObservabilityConfig | None
+    problem: Problem, obs: Observability, config: FitConfig, observability: ObservabilityConfig | None
 ) -> dict[str, Any]:
+    """The verdict's determination fields: weak directions, condition number, observability."""
     tol = (observability or ObservabilityConfig()).coefficient_tol
-    weak, condition = _weak_directions(obs, ranged, config.weak_fraction, tol)
-    return {"weak": tuple(weak), "weak_fraction": config.weak_fraction, "condition": condition}
-
-
-def _ranged(params) -> np.ndarray:
-    lo, hi = np.asarray(params.lower, dtype=float), np.asarray(params.upper, dtype=float)
-    return np.isfinite(lo) & np.isfinite(hi) & (hi > lo)
+    weak, condition = _weak_directions(obs, config.weak_fraction, tol)
+    params = problem.params
+    weak = [WeakDirection(w.names, w.sigma, tuple(scale_stand_ins(w.names, params))) for w in weak]
+    determined = bool(obs.observable_with_priors)
+    if not determined and not np.any(np.isfinite(np.asarray(obs.std, dtype=float)) & ~obs.fixed):
+        condition = math.inf  # no free unknown is determined: no finite part to take it over (not 1.0)
+    return {
+        "weak": tuple(weak),
+        "weak_fraction": config.weak_fraction,
+        "condition": condition,
+        "determined": determined,
+        "rank": int(obs.rank_with_priors),
+        "unknowns": int(obs.n_free),
+    }
 
 
 def assess_plan(
@@ -564,7 +619,8 @@ def assess_plan(
     observability: ObservabilityConfig | None = None,
     accept: bool = False,
 ) -> FitVerdict:
-    """The verdict on a plan (no measured values): only whether every unknown is well determined."""
+    """The verdict on a plan (no measured values): only whether every unknown is determined and
+    well determined."""
     config = config or FitConfig()
     return FitVerdict(
         chi2=None,
@@ -574,7 +630,7 @@ def assess_plan(
         consistent=True,
         max_condition=config.max_condition,
         accepted=accept,
-        **_weak_part(obs, _ranged(problem.params), config, observability),
+        **_weak_part(problem, obs, config, observability),
     )
 
 
@@ -616,7 +672,7 @@ def assess_fit(
     S = float(r @ r)
     m_rows = problem.n_residuals
     dof = max(m_rows - int(obs.rank_with_priors), 0)
-    weak = _weak_part(obs, _ranged(problem.params), config, observability)
+    weak = _weak_part(problem, obs, config, observability)
     common = dict(threshold=alpha, loss=str(loss), max_condition=config.max_condition, accepted=accept, **weak)
     if dof == 0:
         return FitVerdict(S, 0, None, consistent=True, **common)  # type: ignore[arg-type]

@@ -31,6 +31,9 @@ __all__ = [
     "ObservabilityConfig",
     "analyze",
     "unknown_scales",
+    "scale_sources",
+    "scale_stand_ins",
+    "weak_scale_text",
     "PointUncertainty",
     "PointUncertainties",
     "PointLabels",
@@ -188,13 +191,64 @@ class Observability:
         return text
 
 
+SCALE_SOURCES = ("range", "prior", "nominal")
+"""What an unknown's natural scale is (:func:`scale_sources`): half its search range, its prior σ,
+or max(1, |nominal|)."""
+
+
+def scale_sources(params) -> np.ndarray:
+    """(n,) int: which rule :func:`unknown_scales` applies to each unknown — an index into
+    :data:`SCALE_SOURCES` (0 half the search range, 1 the prior σ, 2 max(1, |nominal|))."""
+    lo, hi, sig = params.lower, params.upper, params.prior_sigma
+    ranged = np.isfinite(lo) & np.isfinite(hi) & (hi > lo)
+    return np.where(ranged, 0, np.where(np.isfinite(sig), 1, 2))
+
+
 def unknown_scales(params) -> np.ndarray:
-    """Each unknown's natural scale: half its search range, else its prior σ, else max(1, |nominal|)."""
+    """Each unknown's natural scale: half its search range, else its prior σ, else max(1, |nominal|).
+
+    The one yardstick of "how well is it determined": the observability analysis calls a direction
+    weakly observable, and the fit verdict (:mod:`mbcal.fit`) weakly determined, when σ along it
+    exceeds one scale (half the search range, where there is one)."""
     lo, hi, sig, x0 = params.lower, params.upper, params.prior_sigma, params.x0
-    scale = np.where(np.isfinite(lo) & np.isfinite(hi) & (hi > lo), (hi - lo) / 2.0, np.nan)
-    scale = np.where(np.isnan(scale) & np.isfinite(sig), sig, scale)
-    scale = np.where(np.isnan(scale), np.maximum(1.0, np.abs(x0)), scale)
-    return scale
+    source = scale_sources(params)
+    with np.errstate(invalid="ignore"):
+        return np.where(source == 0, (hi - lo) / 2.0, np.where(source == 1, sig, np.maximum(1.0, np.abs(x0))))
+
+
+def scale_stand_ins(names: Sequence[str], params) -> list[str]:
+    """For the unknowns among ``names`` that have no search range, their scale (what stands in for
+    half a search range, :func:`unknown_scales`) in display units: ``"x: prior σ = 2 mm"``,
+    ``"d: |nominal| = 5 m"``, ``"z: 1 m (|nominal| < 1)"``; empty when each has a search range."""
+    index = {name: i for i, name in enumerate(params.names)}
+    source, scale = scale_sources(params), unknown_scales(params)
+    x0 = params.x0
+    out = []
+    for name in names:
+        i = index.get(name)
+        if i is None or source[i] == 0:
+            continue
+        unit = params.info(name).unit
+        shown = f"{to_display(unit, float(scale[i])):.3g}{(' ' + unit) if unit else ''}"
+        if source[i] == 1:
+            out.append(f"{name}: prior σ = {shown}")
+        elif abs(float(x0[i])) >= 1.0:
+            out.append(f"{name}: |nominal| = {shown}")
+        else:
+            out.append(f"{name}: {shown} (|nominal| < 1)")
+    return out
+
+
+def weak_scale_text(names: Sequence[str], params) -> str:
+    """What σ along a weakly observable direction of ``names`` is measured in — each unknown's
+    scale (:func:`unknown_scales`) — for "σ along this direction is 14 × …": "half the search
+    range", or, where unknowns have no search range, their scales."""
+    stand_ins = scale_stand_ins(names, params) if params is not None else []
+    if not stand_ins:
+        return "half the search range"
+    if len(stand_ins) == len(names):
+        return f"its scale (no search range; {'; '.join(stand_ins)})"
+    return f"its scale (half the search range; without one, {'; '.join(stand_ins)})"
 
 
 def _sparse_basis(N: np.ndarray) -> np.ndarray:

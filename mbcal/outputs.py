@@ -60,7 +60,8 @@ def check_output(
     ------
     OutputError
         The path is one of ``inputs`` (mbcal never overwrites its input), its folder does not
-        exist, it is a folder, or it exists and ``overwrite`` is False.
+        exist or is not writable, it is a folder or a read-only file, or it exists and
+        ``overwrite`` is False.
     """
     out = Path(path)
     resolved = out.resolve()
@@ -71,6 +72,10 @@ def check_output(
         raise OutputError(f"{out} is a folder; give a file name")
     if not resolved.parent.is_dir():
         raise OutputError(f"cannot write {out}: folder {out.parent} does not exist")
+    if not os.access(resolved.parent, os.W_OK | os.X_OK):
+        raise OutputError(f"cannot write {out}: folder {out.parent} is not writable")
+    if out.exists() and not os.access(resolved, os.W_OK):
+        raise OutputError(f"cannot write {out}: the file is read-only")
     if out.exists() and not overwrite:
         raise OutputError(f"{out} exists; pass --force to replace it")
     return out
@@ -80,6 +85,20 @@ INTERRUPTED = threading.Event()
 """Set by the command line's Ctrl-C handler (:func:`mbcal.cli.main`).  Python only prints an
 interrupt that lands in a finalizer or a callback and goes on; the flag still stops every later
 write (:func:`check_interrupted`), so an interrupted command never leaves an output behind."""
+
+
+def check_output_folder(path: str | os.PathLike[str], what: str) -> Path:
+    """Validate an output folder (made when missing) before any work is done: ``what`` names the
+    option in the message (``--overlay``)."""
+    folder = Path(path)
+    if folder.exists() and not folder.is_dir():
+        raise OutputError(f"{what} needs a folder; {folder} is a file")
+    parent = next((p for p in (folder.resolve(), *folder.resolve().parents) if p.exists()), None)
+    if parent is None or not parent.is_dir():
+        raise OutputError(f"{what}: cannot make the folder {folder}: {parent} is a file")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise OutputError(f"{what}: cannot write into {folder}: {parent} is not writable")
+    return folder
 
 
 def check_interrupted() -> None:

@@ -12,7 +12,7 @@ import numpy as np
 from mbcal.export.mdl import write_calibrated_model
 from mbcal.fit import FitVerdict
 from mbcal.measurements.registry import get_model
-from mbcal.observability import MadeWhenRead, Observability, PointUncertainty
+from mbcal.observability import MadeWhenRead, Observability, PointUncertainty, weak_scale_text
 from mbcal.problem import Problem
 from mbcal.solver import LeastSquaresResult, SolverConfig, Status
 from mbcal.structured import BlockCovariance
@@ -291,6 +291,13 @@ class CalibrationResult:
                 f"with {self.problem.measurements.path}: S = {self.cost:.6g}, "
                 + ", ".join(f"RMS {k} {v:.4g}" for k, v in self.rms.items())
             )
+        if not self.ok:
+            # A model written from a fit that is not to be trusted says so where it is read.
+            why = [] if self.converged else [f"the solve did not converge ({self.status.label})"]
+            why += [] if self.observable else ["not every unknown is observable"]
+            note.append("NOT A TRUSTWORTHY FIT" + (": " + "; ".join(why) if why else ""))
+            if self.verdict is not None:
+                note.append(f"verdict: {self.verdict.verdict()}")
         write_calibrated_model(self.problem.model, self.values, path, std=self.std, note=note, overwrite=overwrite)
 
 
@@ -499,13 +506,14 @@ def _std_cell(unit: str, v: float) -> str:
     return f"{fmt(to_display(unit, v), 3)} {unit}".rstrip()
 
 
-def _observability_text(obs) -> list[str]:
+def _observability_text(obs, params=None) -> list[str]:
     out = ["", f"observability: {obs.verdict()}"]
     for c in obs.unobservable:
         out.append(f"  - {c.describe()}")
     for c in obs.weak:
         names = ", ".join(c.names)
-        out.append(f"  - weakly observable ({names}): σ along this direction is {c.sigma:.2g} × the search range")
+        scale = weak_scale_text(c.names, params)  # what c.sigma is in: each unknown's scale, as the analysis scales it
+        out.append(f"  - weakly observable ({names}): σ along this direction is {c.sigma:.2g} × {scale}")
     if obs.suggestions:
         out.append("  measurements that would help most:")
         for s in obs.suggestions:
@@ -581,7 +589,7 @@ def result_text(r: CalibrationResult, *, max_residuals: int = 15) -> str:
     out.append("")
     out.append(table(["parameter", "estimate", "σ", "initial"], rows, align="lrrr"))
     out.extend(_active_bounds_text(r))
-    out.extend(_observability_text(r.observability))
+    out.extend(_observability_text(r.observability, r.problem.params))
     out.extend(_points_text(r.points, r.problem.model))
     worst = r.residuals.worst(max_residuals)
     res_rows = []
@@ -667,7 +675,7 @@ def plan_text(a: PlanAnalysis) -> str:
         rows.append([name, _value_cell(unit, a.x[i]), _std_cell(unit, a.observability.std[i])])
     out.append("")
     out.append(table(["parameter", "at", "expected σ"], rows, align="lrr"))
-    out.extend(_observability_text(a.observability))
+    out.extend(_observability_text(a.observability, a.problem.params))
     out.extend(_points_text(a.points, a.problem.model))
     if a.verdict is not None:
         out.append("")

@@ -255,3 +255,110 @@ def test_with_a_robust_loss_clean_data_is_consistent(boxes):
     data = mbcal.simulate(model, plan, BOX_TRUTH, seed=8)
     result = mbcal.calibrate(model, data, ["room.*"], restarts=2, points=[], config=SolverConfig(loss="cauchy"))
     assert result.verdict.consistent and result.ok
+
+
+# ---- (d) an unknown without a search range: the same yardstick as the observability analysis --------
+
+NARROW_STEREO = """
+param d = 5 m
+frame obj at (0, d, 0) {{ point p = (0, 0, 0) }}
+camera a(width = 640, height = 480, f = 500) at look_at(eye = (-{half}, 0, 0), target = (-{half}, 1 m, 0))
+camera b(width = 640, height = 480, f = 500) at look_at(eye = ({half}, 0, 0), target = ({half}, 1 m, 0))
+"""
+
+
+def stereo(folder, half: str):
+    """Two cameras ``2 × half`` apart seeing one point at the unranged distance d = 5 m, as files."""
+    (folder / "stereo.mdl").write_text(NARROW_STEREO.format(half=half))
+    (folder / "plan.csv").write_text("id,kind,camera,point,sigma\na,image_point,a,obj.p,1\nb,image_point,b,obj.p,1\n")
+    return folder / "stereo.mdl", folder / "plan.csv"
+
+
+def run_json(command: str, *args, capsys) -> tuple[int, dict, str]:
+    """``mbcal COMMAND ... --json -`` in this process: (exit status, JSON report, text report)."""
+    status = main([command, *map(str, args), "--json", "-"])
+    out, err = capsys.readouterr()
+    report = json.loads(out)
+    jsonschema.validate(report, schema())
+    return status, report, err
+
+
+def test_an_unranged_unknown_known_to_70_m_is_weakly_determined(tmp_path, capsys):
+    """A 1 mm stereo baseline at 5 m: σ(d) = 70.7 m.  d has no search range; it used to be skipped
+    by the verdict ("well determined", exit 0, and a solve at d = 6e8 m "consistent and well
+    determined") while the observability analysis called it weakly observable."""
+    mdl, plan = stereo(tmp_path, "0.5 mm")
+    status, report, text = run_json("observe", mdl, plan, "--estimate", "d", capsys=capsys)
+    assert status == 1 and not report["ok"]
+    fit = report["fit"]
+    assert not fit["well_determined"] and not fit["ok"]
+    assert fit["weak"][0]["names"] == ["d"] and fit["weak"][0]["sigma_fraction"] > 5  # 70.7 m of ± 5 m: 7.07
+    assert "NOT trustworthy: weakly determined" in text and "verdict: well determined" not in text
+    # one yardstick: σ / (half the range, here |nominal| = 5 m) in the analysis, σ / the range in the verdict
+    (line,) = [ln for ln in text.splitlines() if "weakly observable (d)" in ln]
+    assert "search range" not in line.replace("no search range", "") and "|nominal| = 5 m" in line
+    analysis = mbcal.observe(mbcal.load_model(mdl), mbcal.read_measurements(plan, mbcal.load_model(mdl)), ["d"])
+    assert analysis.verdict.weak[0].sigma == pytest.approx(analysis.observability.weak[0].sigma / 2, rel=1e-9)
+    assert analysis.std["d"] == pytest.approx(70.7, rel=1e-2)
+
+    assert main(["simulate", str(mdl), str(plan), "--seed", "4", "-o", str(tmp_path / "data.csv"), "-q"]) == 0
+    capsys.readouterr()
+    status, report, text = solve(mdl, tmp_path / "data.csv", "--estimate", "d", capsys=capsys)
+    assert status == 1 and not report["ok"]
+    fit = report["fit"]
+    assert fit["consistent"] and not fit["well_determined"] and not fit["ok"] and fit["weak"][0]["names"] == ["d"]
+    assert "consistent and well determined" not in text and "weakly determined (d)" in text
+    accepted = main(["solve", str(mdl), str(tmp_path / "data.csv"), "--estimate", "d", "-q", "--accept-poor-fit"])
+    assert accepted == 0
+
+
+def test_an_unranged_unknown_that_is_determined_is_well_determined(tmp_path, capsys):
+    """The same with a 1 m baseline: σ(d) ≈ 5 cm of ± 5 m — no false alarm for unranged unknowns."""
+    mdl, plan = stereo(tmp_path, "0.5 m")
+    status, report, text = run_json("observe", mdl, plan, "--estimate", "d", capsys=capsys)
+    assert status == 0, text
+    assert report["fit"]["well_determined"] and report["fit"]["weak"] == [] and "verdict: well determined" in text
+
+
+# ---- (e) an unobservable problem is never "well determined" --------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def lever(tmp_path_factory):
+    """The room's clicks of the lever's hub and tip only: the room's pose is rank 5 of 6."""
+    folder = tmp_path_factory.mktemp("lever")
+    lines = (MEASUREMENTS / "room_plan.csv").read_text().splitlines()
+    kept = [lines[0]] + [ln for ln in lines[1:] if "lever.hub" in ln or "lever.tip" in ln]
+    assert len(kept) == 5
+    (folder / "plan.csv").write_text("\n".join(kept) + "\n")
+    data = folder / "data.csv"
+    assert main(["simulate", str(ROOM), str(folder / "plan.csv"), "--seed", "1", "-o", str(data), "-q"]) == 0
+    return folder
+
+
+def test_an_unobservable_solve_is_not_well_determined_in_the_verdict(lever, capsys):
+    capsys.readouterr()
+    status, report, text = solve(ROOM, lever / "data.csv", "--estimate", "room.*", "--restarts", "4", capsys=capsys)
+    assert status == 1 and not report["ok"] and not report["observable"] and report["rank"] == 5
+    fit = report["fit"]
+    assert fit["consistent"]  # the χ² test passes: the residuals are not what is wrong
+    assert not fit["well_determined"] and not fit["ok"] and fit["condition_number"] is None
+    assert fit["verdict"].startswith("NOT trustworthy: not observable (rank 5 of 6)")
+    assert "well determined" not in fit["verdict"]
+    assert "verdict: NOT trustworthy: not observable (rank 5 of 6)" in text
+    assert "consistent and well determined" not in text
+    # --accept-poor-fit does not accept an unobservable problem: exit 1, and the verdict does not say otherwise
+    status, report, text = solve(
+        ROOM, lever / "data.csv", "--estimate", "room.*", "--restarts", "4", "--accept-poor-fit", capsys=capsys
+    )
+    assert status == 1 and not report["ok"] and not report["fit"]["ok"]
+    assert "accepted anyway" not in text and "even with --accept-poor-fit" in text
+
+
+def test_an_unobservable_plan_is_not_well_determined_in_the_verdict(lever, capsys):
+    capsys.readouterr()
+    status, report, text = run_json("observe", ROOM, lever / "plan.csv", "--estimate", "room.*", capsys=capsys)
+    assert status == 1 and not report["ok"]
+    fit = report["fit"]
+    assert not fit["well_determined"] and not fit["ok"] and fit["condition_number"] is None
+    assert "verdict: NOT trustworthy: not observable (rank 5 of 6)" in text and "verdict: well determined" not in text

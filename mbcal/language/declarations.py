@@ -9,6 +9,7 @@ calibration targets (:mod:`mbcal.language.targets`) — in the order they were w
 from __future__ import annotations
 
 import dataclasses
+import math
 
 from mbcal.errors import DimensionError, MdlError, UndefinedNameError, UnitError, suggest
 from mbcal.language import ast
@@ -171,6 +172,15 @@ def _joint(c: Compiler, d: Deferred) -> JointInfo:
         if node is not None and not isinstance(node, Const):
             raise MdlError(f"the joint's {key} limit must be a constant", bound[key].span)
         limits.append(float(node.value) if isinstance(node, Const) else None)
+    lo, hi = limits
+    if lo is not None and hi is not None and not lo <= hi:
+        shown = [math.degrees(v) if dim == ANGLE else v for v in (lo, hi)]
+        unit = "deg" if dim == ANGLE else "m"
+        raise MdlError(
+            f"the joint's lower limit ({shown[0]:g} {unit}) is above its upper limit ({shown[1]:g} {unit})",
+            bound["lower"].span,
+            hint="swap them: lower = the smaller value",
+        )
     assert q is not None
     kind = "revolute" if stmt.kind == "continuous" else stmt.kind
     return JointInfo(kind, axis, q, offset, limits[0], limits[1], stmt.span)

@@ -1,0 +1,140 @@
+"""The command line refuses bad options before the work and never ends in a traceback: output
+folders that cannot be written, a negative seed, values in a unit of the wrong dimension, a
+photo of the wrong size, joint limits the wrong way round, a failing write; and a model written
+from an untrustworthy fit says so in its header."""
+
+from __future__ import annotations
+
+import errno
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from mbcal import cli
+from mbcal.errors import MdlError, OutputError
+from mbcal.language import load_model_text
+from mbcal.outputs import check_output, check_output_folder
+
+from conftest import MEASUREMENTS, MODELS
+
+LEVER = str(MODELS / "lever.mdl")
+LEVER_PLAN = str(MEASUREMENTS / "lever_plan.csv")
+
+
+def run(*args, cwd=None):
+    return subprocess.run(
+        [sys.executable, "-m", "mbcal", *map(str, args)], capture_output=True, text=True, cwd=cwd, timeout=600
+    )
+
+
+@pytest.fixture(scope="module")
+def clicks(tmp_path_factory):
+    """Simulated clicks of the lever at 35° (the model's length)."""
+    out = tmp_path_factory.mktemp("lever") / "clicks.csv"
+    result = run("simulate", LEVER, LEVER_PLAN, "--set", "lever.angle=35deg", "--seed", "1", "-o", out, "-q")
+    assert result.returncode == 0, result.stderr
+    return out
+
+
+def test_an_output_folder_that_cannot_be_written_is_refused_before_the_work(tmp_path, monkeypatch):
+    # os.access answers for the user running mbcal (root may write anywhere, so it is asked here).
+    target = tmp_path / "out"
+    target.mkdir()
+    monkeypatch.setattr(cli.os, "access", lambda path, mode: False)
+    with pytest.raises(OutputError, match="is not writable"):
+        check_output(target / "report.json")
+    with pytest.raises(OutputError, match="is not writable"):
+        check_output_folder(target / "overlays", "--overlay")
+
+
+def test_an_overlay_folder_under_a_file_is_refused_before_the_work(tmp_path, clicks):
+    (tmp_path / "afile").write_text("mine\n")
+    result = run("solve", LEVER, clicks, "--estimate", "lever.angle", "-q", "--overlay", tmp_path / "afile" / "sub")
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert "cannot make the folder" in result.stderr and "is a file" in result.stderr
+    assert (tmp_path / "afile").read_text() == "mine\n"
+
+
+def test_a_write_the_system_refuses_is_an_error_not_a_traceback(tmp_path, monkeypatch, capsys):
+    # The disk fills up as the finished file is flushed: the checks before the work cannot see it.
+    def full(_fd):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr("mbcal.outputs.os.fsync", full)
+    code = cli.main(["simulate", LEVER, LEVER_PLAN, "-o", str(tmp_path / "plan.csv"), "-q"])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert err.startswith("error: No space left on device") and "Traceback" not in err
+    assert list(tmp_path.iterdir()) == []  # neither the file nor the temporary one is left
+
+
+@pytest.mark.parametrize("command", ["solve", "simulate"])
+def test_a_negative_seed_is_a_usage_error(tmp_path, clicks, command):
+    args = [LEVER, clicks, "--estimate", "lever.angle"] if command == "solve" else [LEVER, LEVER_PLAN]
+    result = run(command, *args, "--seed", "-1", "-o" if command == "simulate" else "-q", tmp_path / "x.csv")
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert "--seed: expected a whole number ≥ 0, got -1" in result.stderr
+    assert not (tmp_path / "x.csv").exists()
+
+
+def test_values_given_in_a_unit_of_another_dimension_are_refused(tmp_path, clicks):
+    result = run("solve", LEVER, clicks, "--estimate", "lever.angle", "--set", "lever.length=3deg")
+    assert result.returncode == 2
+    assert "--set lever.length: 'deg' is not a unit of lever.length, which is a length (m)" in result.stderr
+    result = run("simulate", LEVER, LEVER_PLAN, "--set", "lever.angle=5cm", "-o", tmp_path / "s.csv")
+    assert result.returncode == 2 and "which is an angle" in result.stderr
+    assert not (tmp_path / "s.csv").exists()
+    arm = MODELS / "arm7.mdl"
+    result = run("kinematics", arm, "--point", "hand.tip", "--chain", "arm.q*", "--joints", "0,0,0,0,0,0,5cm")
+    assert result.returncode == 2 and "--joints arm.q7: 'cm' is not a unit of arm.q7" in result.stderr
+    result = run("kinematics", arm, "--point", "hand.tip", "--chain", "arm.q*", "--ik", "0.1,0.2,3deg")
+    assert result.returncode == 2 and "the target's z" in result.stderr
+    # The same values in units of their dimension, or plain SI numbers, are taken.
+    result = run("simulate", LEVER, LEVER_PLAN, "--set", "lever.angle=0.6", "--set", "lever.length=25cm", "-o",
+                 tmp_path / "s.csv", "-q")  # fmt: skip
+    assert result.returncode == 0, result.stderr
+
+
+def test_a_background_photo_of_the_wrong_size_is_refused_before_the_solve(tmp_path, clicks):
+    Image.fromarray(np.zeros((480, 640, 3), dtype=np.uint8)).save(tmp_path / "photo.png")
+    out = tmp_path / "overlays"
+    result = run("solve", LEVER, clicks, "--estimate", "lever.angle", "-q", "--overlay", out,
+                 "--background", f"eye={tmp_path / 'photo.png'}")  # fmt: skip
+    assert result.returncode == 2
+    assert "the background is 640×480 pixels but camera 'eye' is 669×453" in result.stderr
+    assert not out.exists()  # refused before anything was written
+    Image.fromarray(np.full((453, 669, 3), 90, dtype=np.uint8)).save(tmp_path / "right.png")
+    result = run("solve", LEVER, clicks, "--estimate", "lever.angle", "-q", "--overlay", out,
+                 "--background", f"eye={tmp_path / 'right.png'}")  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    after = np.asarray(Image.open(out / "eye_after.png"))
+    assert after.shape[:2] == (453, 669) and (after == 90).all(axis=-1).mean() > 0.5  # drawn over the photo
+
+
+def test_joint_limits_the_wrong_way_round_are_an_error_at_the_lower_limit():
+    text = "param q = 0 deg\nframe f {\n  joint revolute(z, q, lower = 30 deg, upper = -30 deg)\n}\n"
+    with pytest.raises(MdlError) as info:
+        load_model_text(text)
+    assert "lower limit (30 deg) is above its upper limit (-30 deg)" in str(info.value)
+    assert (info.value.span.line, info.value.span.column) == (3, 32)
+
+
+def test_a_model_written_from_an_untrustworthy_fit_says_so_in_its_header(tmp_path):
+    # Clicks of a lever 10 cm longer than the model's: the fit cannot be consistent with 1 px.
+    data = tmp_path / "long.csv"
+    result = run("simulate", LEVER, LEVER_PLAN, "--set", "lever.angle=35deg", "--set", "lever.length=35cm",
+                 "--seed", "1", "-o", data, "-q")  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    bad, good = tmp_path / "bad.mdl", tmp_path / "good.mdl"
+    result = run("solve", LEVER, data, "--estimate", "lever.angle", "-q", "--write-model", bad)
+    assert result.returncode == 1
+    header = bad.read_text().split("\n\n")[0]
+    assert "# NOT A TRUSTWORTHY FIT" in header and "# verdict: NOT trustworthy" in header
+    clicks = tmp_path / "clicks.csv"
+    run("simulate", LEVER, LEVER_PLAN, "--set", "lever.angle=35deg", "--seed", "1", "-o", clicks, "-q")
+    result = run("solve", LEVER, clicks, "--estimate", "lever.angle", "-q", "--write-model", good)
+    assert result.returncode == 0, result.stderr
+    assert "TRUSTWORTHY" not in good.read_text()
