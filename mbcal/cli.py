@@ -35,7 +35,7 @@ import numpy as np  # noqa: E402
 from mbcal import __version__  # noqa: E402
 from mbcal.errors import MbcalError  # noqa: E402
 from mbcal.outputs import INTERRUPTED, atomic_write, check_output, check_output_folder  # noqa: E402
-from mbcal.units import LENGTH, UNITS, describe  # noqa: E402
+from mbcal.units import LENGTH, UNITS, describe, to_display  # noqa: E402
 
 __all__ = ["main", "build_parser"]
 
@@ -1109,7 +1109,10 @@ def _register_commands(sub) -> None:
     _range_arguments(p)
     p.add_argument("--drift-k", type=float, default=3.0, metavar="K", help="drift flag at K σ (default 3)")
     p.add_argument(
-        "--process-noise", action="append", metavar="GLOB=SIGMA", help="expected change per update (SI); repeatable"
+        "--process-noise",
+        action="append",
+        metavar="GLOB=SIGMA",
+        help="expected change per update, with a unit (0.5deg) or SI; repeatable",
     )
     p.add_argument("--poll", type=float, default=1.0, metavar="S", help="seconds between looks (default 1)")
     p.add_argument("--once", action="store_true", help="process the files there now and exit")
@@ -1164,16 +1167,17 @@ def cmd_fit(args: argparse.Namespace) -> int:
     return 0 if fit.ok else 1
 
 
+def _shown(model, name: str, value: float, std: float) -> str:
+    """``room.yaw 1.49928±0.0014 deg``: a value and its σ in the parameter's display unit."""
+    unit = model.param(name.split("@", 1)[0]).unit
+    return f"{name} {to_display(unit, value):.6g}±{to_display(unit, std):.2g} {unit}".rstrip()
+
+
 def cmd_watch(args: argparse.Namespace) -> int:
     from mbcal.range.manager import ModelManager  # lazy: keeps JAX out of 'mbcal check'
 
-    noise = {}
-    for item in args.process_noise or []:
-        name, _, value = item.partition("=")
-        try:
-            noise[name] = float(value)
-        except ValueError:
-            raise MbcalError(f"--process-noise expects GLOB=SIGMA (SI units), got '{item}'") from None
+    # σ per update, with a unit of the unknowns' dimension (lever.angle=0.5deg) or in SI units
+    noise = parse_assignments(args.process_noise or [], _load(args.model), "--process-noise")
     manager = ModelManager(
         args.model,
         args.out,
@@ -1189,9 +1193,12 @@ def cmd_watch(args: argparse.Namespace) -> int:
     def report(u) -> None:
         if args.quiet:
             return
+        if u.error:
+            print(f"update {u.seq} (REJECTED, the scan cannot be read): {u.error}", flush=True)
+            return
         flags = "".join(f"\n  drift: {d}" for d in u.drift) + "".join(f"\n  structural misfit: {m}" for m in u.misfits)
         state = "accepted" if u.accepted else "REJECTED"
-        values = ", ".join(f"{k} {v:.6g}±{u.std[k]:.2g}" for k, v in u.values.items())
+        values = ", ".join(_shown(manager.model, k, v, u.std[k]) for k, v in u.values.items())
         print(f"update {u.seq} ({state}, {u.points} points, χ²/dof {u.reduced_chi2:.3g}): {values}{flags}", flush=True)
 
     if not args.quiet and manager.history:

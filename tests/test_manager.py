@@ -149,3 +149,40 @@ def test_kill_9_during_an_update_loses_no_accepted_update(tmp_path):
     assert state["seq"] == count
     calibrated = mbcal.load_model(out / "room.calibrated.mdl")
     assert calibrated.param("room.x").nominal == pytest.approx(after[-1]["values"]["room.x"], abs=1e-9)
+
+
+def test_an_unreadable_scan_is_journalled_and_the_watch_goes_on(tmp_path):
+    """A scan file that cannot be read is a rejected update with the reason in the journal; the
+    next file is still taken, a restart does not stop at the bad one again, and once the bad file
+    is replaced it is read."""
+    model_path = _model_file(tmp_path)
+    model = mbcal.load_model(model_path)
+    scans, out = tmp_path / "in", tmp_path / "out"
+    scans.mkdir()
+    depth = add_depth_noise(render_depth(model, ROOM_TRUTH), 1.5e-3, 0.0, seed=1)
+    (scans / "scan_0001.png").write_bytes(b"partial")
+    write_depth_png(scans / "scan_0002.png", depth)
+    manager = ModelManager(model_path, out, ["room.x", "room.y", "room.z", "room.yaw"])
+    seen = []
+    assert manager.watch(scans, once=True, report=seen.append) == 2
+    bad, good = seen
+    assert not bad.accepted and "scan_0001.png" in bad.error and "cannot read" in bad.error
+    assert good.accepted and not good.error and abs(good.values["room.x"] - 0.01) < 3 * good.std["room.x"]
+    journal = _journal(out)
+    assert [bool(e["error"]) for e in journal] == [True, False]
+    # A restart skips both: the good one was taken, the bad one has not changed.
+    again = ModelManager(model_path, out, ["room.x", "room.y", "room.z", "room.yaw"])
+    assert again.watch(scans, once=True) == 0
+    # Replaced by a readable scan, the file is read (and the state stays the last accepted one's).
+    write_depth_png(scans / "scan_0001.png", depth)
+    seen.clear()
+    assert again.watch(scans, once=True, report=seen.append) == 1
+    assert seen[0].accepted and not seen[0].error and seen[0].files == [str((scans / "scan_0001.png").resolve())]
+
+
+def test_process_noise_must_name_an_estimated_unknown(tmp_path):
+    model_path = _model_file(tmp_path)
+    with pytest.raises(mbcal.MbcalError, match="no estimated unknown matches it"):
+        ModelManager(model_path, tmp_path / "out", ["room.*"], process_noise={"lever.angle": 0.1})
+    with pytest.raises(mbcal.MbcalError, match="finite σ ≥ 0"):
+        ModelManager(model_path, tmp_path / "out", ["room.*"], process_noise={"room.yaw": -1.0})

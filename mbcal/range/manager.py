@@ -65,6 +65,10 @@ class Update:
     mean: list[float] = field(default_factory=list)
     information: list[list[float]] = field(default_factory=list)
     elapsed: float = 0.0
+    error: str = ""
+    """Why the files could not be read (then nothing was fitted: the update is rejected)."""
+    stamp: list[int] = field(default_factory=list)
+    """Size and modification time (ns) of an unreadable file: it is tried again once it changes."""
 
     def to_json(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -168,6 +172,15 @@ class ModelManager:
         self.options = options or FitOptions()
         self.drift_k = drift_k
         self.process_noise = dict(process_noise or {})
+        estimated = [n for n in self.model.names("param") if any(fnmatch.fnmatchcase(n, e) for e in self.estimate)]
+        for pattern, s in self.process_noise.items():
+            if not any(fnmatch.fnmatchcase(n, pattern) for n in estimated):
+                raise MbcalError(
+                    f"process noise for '{pattern}': no estimated unknown matches it",
+                    hint=f"the unknowns: {', '.join(estimated) or 'none'}",
+                )
+            if not (np.isfinite(s) and s >= 0):
+                raise MbcalError(f"process noise for '{pattern}' must be a finite σ ≥ 0, got {s}")
         self.sensor, self.frame, self.sigma = sensor, frame, sigma
         self.history: list[Update] = []
         self.prior: Prior | None = None
@@ -234,7 +247,13 @@ class ModelManager:
 
     @property
     def processed(self) -> set[str]:
-        return {f for u in self.history for f in u.files}
+        """The files taken: fitted, accepted or not (a file that could not be read is not)."""
+        return {f for u in self.history if not u.error for f in u.files}
+
+    @property
+    def unreadable(self) -> dict[str, list[int]]:
+        """Files that could not be read, with their size and time then (the latest attempt)."""
+        return {f: u.stamp for u in self.history if u.error for f in u.files}
 
     def _widened_prior(self) -> Prior | None:
         """The previous posterior with the process noise added to its covariance."""
@@ -294,6 +313,28 @@ class ModelManager:
         scans = [load_scan(p, self.model, sensor=self.sensor, frame=self.frame, sigma=self.sigma) for p in paths]
         return self.update(scans, [str(Path(p).resolve()) for p in paths])
 
+    def _unreadable(self, path: Path, stamp: list[int], err: MbcalError) -> Update:
+        """Record a scan file that cannot be read (a rejected update without a fit), so that the
+        watch goes on with the next file and a restart does not stop at it again."""
+        last = self.last_accepted
+        u = Update(
+            seq=len(self.history) + 1,
+            time=time.time(),
+            values=dict(last.values) if last is not None else {},
+            std=dict(last.std) if last is not None else {},
+            chi2=0.0,
+            reduced_chi2=0.0,
+            points=0,
+            outliers=0,
+            accepted=False,
+            files=[str(path.resolve())],
+            error=str(err),
+            stamp=stamp,
+        )
+        self._append(u)
+        self.history.append(u)
+        return u
+
     def watch(
         self,
         folder: str | os.PathLike,
@@ -313,22 +354,30 @@ class ModelManager:
         src = Path(folder)
         if not src.is_dir():
             raise MbcalError(f"{src}: not a folder (--scans needs a folder of scan files)")
-        done = self.processed
+        done, unreadable = self.processed, self.unreadable
         count = 0
         sizes: dict[Path, tuple[int, float]] = {}
         while True:
             for p in sorted(src.iterdir()):
                 if p.suffix.lower() not in SCAN_SUFFIXES or p.name.startswith(".") or str(p.resolve()) in done:
                     continue
-                size = p.stat().st_size
+                info = p.stat()
+                stamp = [info.st_size, info.st_mtime_ns]
+                if unreadable.get(str(p.resolve())) == stamp:
+                    continue  # could not be read, and has not changed since
+                size = info.st_size
                 seen = sizes.get(p)
                 now = time.monotonic()
                 if not once and (seen is None or seen[0] != size or now - seen[1] < settle):
                     if seen is None or seen[0] != size:
                         sizes[p] = (size, now)
                     continue
-                u = self.update_files([p])
-                done.add(str(p.resolve()))
+                try:
+                    u = self.update_files([p])
+                    done.add(str(p.resolve()))
+                except MbcalError as err:  # one bad file does not stop the watch (it is in the journal)
+                    u = self._unreadable(p, stamp, err)
+                    unreadable[str(p.resolve())] = stamp
                 count += 1
                 if report is not None:
                     report(u)
