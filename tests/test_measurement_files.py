@@ -305,3 +305,220 @@ def test_a_sets_columns_follow_its_measurements_and_give_the_problems_values(tmp
     data.measurements.append(plan.measurements[0])
     col = data.columns().kinds["image_point"]
     assert len(col.members) == len(plan) + 1 and not col.has_value[-1] and np.isnan(col.values[-1]).all()
+
+
+# ---- known rows' unit cell, JSON keys, per-configuration values given in every configuration ---------
+
+
+@pytest.fixture(scope="module")
+def lever():
+    return load_model(MODELS / "lever.mdl")
+
+
+LEVER_ROWS = "hub,image_point,,eye,lever.hub,334.3,226.8,1,,,\ntip,image_point,,eye,lever.tip,223.3,70.9,1,,,\n"
+
+
+def known_csv(tmp_path, value: str, unit: str, param: str = "lever.length"):
+    return write(
+        tmp_path,
+        "k.csv",
+        f"id,kind,config,camera,point,u,v,sigma,param,value,unit\n,known,,,,,,,{param},{value},{unit}\n" + LEVER_ROWS,
+    )
+
+
+@pytest.mark.parametrize(
+    ("value", "unit", "param", "expected"),
+    [
+        ("25", "cm", "lever.length", 0.25),
+        ("25 cm", "", "lever.length", 0.25),
+        ("25 cm", "cm", "lever.length", 0.25),
+        ("250", "mm", "lever.length", 0.25),
+        ("0.25", "", "lever.length", 0.25),
+        ("30", "deg", "lever.angle", math.radians(30)),
+    ],
+)
+def test_a_known_rows_unit_cell_gives_its_values_unit(tmp_path, lever, value, unit, param, expected):
+    """A CSV 'known' row's unit may be written in the value cell or in the unit cell: one meaning."""
+    ms = read_measurements(known_csv(tmp_path, value, unit, param), lever)
+    assert ms.known == {param: pytest.approx(expected)}
+
+
+@pytest.mark.parametrize(
+    ("value", "unit", "message"),
+    [
+        ("25", "deg", "k.csv:2:30: value of 'lever.length': 'deg' is not a length unit"),
+        ("25", "furlong", "k.csv:2:30: value of 'lever.length': unknown unit 'furlong'"),
+        ("25 cm", "mm", "k.csv:2:33: value of 'lever.length': '25 cm' says 'cm' but the unit column says 'mm'"),
+    ],
+)
+def test_a_known_rows_unit_cell_that_does_not_fit_is_an_error_at_the_cell(
+    tmp_path, lever, monkeypatch, value, unit, message
+):
+    monkeypatch.chdir(tmp_path)
+    known_csv(tmp_path, value, unit)
+    with pytest.raises(MeasurementFileError) as info:
+        read_measurements("k.csv", lever)
+    assert str(info.value).startswith(message), str(info.value)
+
+
+def test_the_cli_refuses_a_known_rows_unit_that_does_not_fit(tmp_path, lever, monkeypatch):
+    """The reviewer's case: 25 deg for a length was read as 25 m (and 25 cm as 25 m)."""
+    from mbcal.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    known_csv(tmp_path, "25", "deg")
+    assert main(["solve", str(MODELS / "lever.mdl"), "k.csv", "--estimate", "lever.angle", "-q"]) == 2
+
+
+def lever_json(tmp_path, **extra):
+    records = [
+        {"id": "hub", "kind": "image_point", "camera": "eye", "point": "lever.hub", "u": 334.3, "v": 226.8},
+        {"id": "tip", "kind": "image_point", "camera": "eye", "point": "lever.tip", "u": 223.3, "v": 70.9},
+    ]
+    records[1].update(extra)
+    text = '{"measurements": [\n' + ",\n".join("  " + json.dumps(r) for r in records) + "\n]}\n"
+    return write(tmp_path, "m.json", text)
+
+
+@pytest.mark.parametrize(
+    ("extra", "message", "hint"),
+    [
+        ({"sigam": 0.05}, "m.json:3:3: unknown key 'sigam'", "'sigma'"),
+        ({"Sigma_W": 0.05}, "m.json:3:3: unknown key 'sigma_w'", "did you mean 'sigma_"),
+        ({"param": "lever.angle"}, "m.json:3:3: unknown key 'param'", None),
+        ({"config": "a", "configuration": "b"}, "m.json:3:3: 'config' ('a') and 'configuration' ('b') name", None),
+    ],
+)
+def test_unknown_keys_in_json_records_are_errors(tmp_path, lever, monkeypatch, extra, message, hint):
+    """Like an unknown CSV column: a typo of 'sigma' would otherwise be the default σ = 1 px."""
+    monkeypatch.chdir(tmp_path)
+    lever_json(tmp_path, **extra)
+    with pytest.raises(MeasurementFileError) as info:
+        read_measurements("m.json", lever)
+    assert str(info.value).startswith(message), str(info.value)
+    if hint:
+        assert hint in str(info.value)
+
+
+def test_json_records_take_every_csv_column(tmp_path, lever):
+    """The keys a JSON record may have are the CSV's columns, whatever the kind (and a comment)."""
+    ms = read_measurements(
+        lever_json(tmp_path, sigma_u=0.5, sigma_v=0.7, unit="px", configuration="default", comment="re-clicked"),
+        lever,
+    )
+    np.testing.assert_allclose(ms.measurements[1].sigma, [0.5, 0.7])
+    doc = {
+        "measurements": [
+            {
+                "kind": "point3d",
+                "point": "lever.tip",
+                "frame": "room",
+                "x": 1,
+                "y": 2,
+                "z": 3,
+                "unit": "mm",
+                "sigma": 1,
+            },
+            {"kind": "distance", "a": "lever.tip", "b": "lever.hub", "value": 25, "unit": "cm", "cov": [[1e-4]]},
+            {"kind": "angle", "a": "lever.tip", "b": "lever.hub", "c": "lever.tip", "d": "room", "value": 0.1},
+        ]
+    }
+    assert len(read_measurements(write(tmp_path, "keys.json", json.dumps(doc)))) == 3  # names as written
+
+
+def test_the_documented_examples_read(tmp_path, lever):
+    """docs/cli.md's CSV and JSON examples of the measurement file format are read as written."""
+    import re
+
+    from conftest import ROOT
+
+    text = (ROOT / "docs" / "cli.md").read_text(encoding="utf-8")
+    section = text[text.index("## Measurement files") :]
+    for suffix in ("csv", "json"):
+        (body,) = re.findall(rf"^```{suffix}\n(.*?)^```", section, re.S | re.M)
+        ms = read_measurements(write(tmp_path, f"doc.{suffix}", body), lever)
+        assert [m.id for m in ms] == ["hub", "tip"], suffix
+        assert ms.known == {"lever.length": pytest.approx(0.25)}, suffix
+
+
+def arm_data_without(tmp_path, config: str, name: str):
+    doc = json.loads((MEASUREMENTS / "arm_plan.json").read_text(encoding="utf-8"))
+    del doc["configurations"][config][name]
+    text = json.dumps(doc, indent=1)
+    return write(tmp_path, "arm.json", text), text
+
+
+def test_a_per_configuration_value_left_out_of_one_configuration_is_an_error(tmp_path, arm, monkeypatch):
+    """The reviewer's case: pose03 without arm.q4 would silently have had the nominal reading."""
+    monkeypatch.chdir(tmp_path)
+    _, text = arm_data_without(tmp_path, "pose03", "arm.q4")
+    line = text[: text.index('"pose03"')].count("\n") + 1
+    with pytest.raises(MeasurementFileError) as info:
+        read_measurements("arm.json", arm)
+    message = str(info.value)
+    assert message.startswith(
+        f"arm.json:{line}:3: configuration 'pose03' gives no value for 'arm.q4', which configurations "
+        "'pose01', 'pose02', 'pose04' and 6 more give"
+    ), message
+    assert "nominal" in message
+    with pytest.raises(MeasurementFileError, match="configuration 'pose03' gives no value for 'arm.q4'"):
+        read_measurements("arm.json")  # without a model too
+
+
+def test_the_cli_refuses_a_per_configuration_value_left_out(tmp_path, capsys):
+    from mbcal.cli import main
+
+    path, _ = arm_data_without(tmp_path, "pose03", "arm.q4")
+    assert main(["observe", str(MODELS / "arm7.mdl"), str(path), "--estimate", "arm.offset*", "-q"]) == 2
+    assert "configuration 'pose03' gives no value for 'arm.q4'" in capsys.readouterr().err
+
+
+def test_a_configuration_only_measured_in_must_give_the_per_configuration_values_too(tmp_path, arm, monkeypatch):
+    """CSV: the known rows of c1 give arm.q4; c2 is only measured in (its rows forgotten)."""
+    monkeypatch.chdir(tmp_path)
+    write(
+        tmp_path,
+        "m.csv",
+        "id,kind,config,camera,point,param,value\n"
+        ",known,c1,,,arm.q4,-60 deg\n"
+        "a,image_point,c1,eyes.left,hand.tip,,\n"
+        "b,image_point,c2,eyes.left,hand.tip,,\n",
+    )
+    with pytest.raises(MeasurementFileError) as info:
+        read_measurements("m.csv", arm)
+    assert str(info.value).startswith(
+        "m.csv:4:1: configuration 'c2', which measurements are taken in, gives no value for 'arm.q4', which "
+        "configuration 'c1' gives"
+    ), str(info.value)
+    # JSON: a configuration listed without values
+    doc = {
+        "configurations": {"c1": {"arm.q4": 0.1, "arm.q5": 0.2}, "c2": {}},
+        "measurements": [{"kind": "image_point", "config": "c1", "camera": "eyes.left", "point": "hand.tip"}],
+    }
+    text = json.dumps(doc, indent=1)
+    write(tmp_path, "m.json", text)
+    line = text[: text.index('"c2"')].count("\n") + 1
+    with pytest.raises(MeasurementFileError) as info:
+        read_measurements("m.json", arm)
+    assert str(info.value).startswith(
+        f"m.json:{line}:3: configuration 'c2' gives no value for 'arm.q4' (nor for 'arm.q5')"
+    ), str(info.value)
+
+
+def test_per_configuration_values_given_everywhere_or_nowhere_are_read(tmp_path, arm):
+    """A parameter never given keeps its nominal value; one given once for every configuration is
+    the value of the configurations that do not give their own."""
+    records = [
+        {"kind": "image_point", "config": c, "camera": "eyes.left", "point": "hand.tip"} for c in ("c1", "c2", "c3")
+    ]
+    doc = {
+        "configurations": {"c1": {"arm.q4": 0.1}, "c2": {"arm.q4": 0.2}, "c3": {"arm.q4": 0.3}},
+        "measurements": records,
+    }
+    ms = read_measurements(write(tmp_path, "all.json", json.dumps(doc)), arm)
+    assert [ms.configurations[c]["arm.q4"] for c in ("c1", "c2", "c3")] == [0.1, 0.2, 0.3]
+    doc = {"measurements": records}
+    assert read_measurements(write(tmp_path, "none.json", json.dumps(doc)), arm).configurations == {}
+    doc = {"known": {"arm.q4": 0.5}, "configurations": {"c2": {"arm.q4": 0.2}}, "measurements": records}
+    ms = read_measurements(write(tmp_path, "default.json", json.dumps(doc)), arm)
+    assert ms.known == {"arm.q4": 0.5} and ms.configurations == {"c2": {"arm.q4": 0.2}}

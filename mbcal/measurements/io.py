@@ -20,8 +20,12 @@ JSON::
         {"id": "m1", "kind": "image_point", "config": "pose1", "camera": "left",
          "point": "hand.tip", "u": 312.4, "v": 201.9, "sigma": 0.5}]}
 
-Values are SI (metres, radians, pixels) unless the row gives a ``unit``.  Every problem is
-reported as ``file:line:col: message``.
+Values are SI (metres, radians, pixels) unless the row gives a ``unit`` (a ``known`` row's
+``unit`` cell is read like a unit written after its value, and checked against the
+parameter's dimension).  JSON records take the CSV's columns as keys (less ``param``, plus
+``comment``); any other key is an error.  A per-configuration parameter given in some
+configurations must be given in all of them.  Every problem is reported as
+``file:line:col: message`` (docs/cli.md, "Measurement files").
 """
 
 from __future__ import annotations
@@ -71,6 +75,8 @@ MAX_FILE_BYTES = 512 * 1024 * 1024
 
 
 def _csv_columns() -> set[str]:
+    """The columns a CSV file may have (those of every registered measurement kind, plugins'
+    included); JSON measurement records take the same keys (:func:`_json_record_keys`)."""
     cols = {"id", "kind", "config", "configuration", "unit", "sigma", "cov", "param", "value"}
     for mm in registry().values():
         cols.update(r.name for r in mm.roles)
@@ -78,6 +84,13 @@ def _csv_columns() -> set[str]:
         cols.update(mm.data)
         cols.update(f"sigma_{v}" for v in mm.values)
     return cols
+
+
+def _json_record_keys() -> set[str]:
+    """The keys a JSON measurement record may have: the CSV columns, less ``param`` (JSON files
+    give known values in ``known`` and ``configurations``, not as records), plus ``comment``
+    (JSON has no comment lines)."""
+    return (_csv_columns() - {"param"}) | {"comment"}
 
 
 def _field_columns(line: str, n: int) -> list[int]:
@@ -163,7 +176,19 @@ def _read_csv(handle, path: str, builder: SetBuilder) -> None:
                 raise MeasurementFileError(f"row has {len(row)} fields but the header has {len(header)}", where)
         record = {h: (row[i].strip() if i < len(row) else "") for i, h in enumerate(header) if h}
         if record.get("kind", "").lower() == "known":
-            builder.known_value(record.get("param", ""), record.get("value", ""), record.get("config") or None, where)
+            unit = record.get("unit") or None
+            unit_where = where
+            if unit:  # the unit cell, for an error in it (a dimension that does not fit)
+                cells = _field_columns(lines.last.rstrip("\r\n"), len(row))
+                unit_where = SourceSpan(path, line_no, cells[header.index("unit")])
+            builder.known_value(
+                record.get("param", ""),
+                record.get("value", ""),
+                record.get("config") or None,
+                where,
+                unit=unit,
+                unit_where=unit_where,
+            )
             continue
         builder.add(record, where, len(builder.measurements) + 1)
     if header is None:
@@ -198,6 +223,33 @@ def _json_line_index(text: str) -> list[int]:
     return offsets
 
 
+def _json_key_spans(text: str, path: str, section: str) -> dict[str, SourceSpan]:
+    """Where each key of the top-level object ``section`` ("known", "configurations") is written
+    (best effort: keys not found are left out)."""
+    m = re.search(r'"' + section + r'"\s*:\s*\{', text)
+    if m is None:
+        return {}
+    decoder = json.JSONDecoder()
+    pos = m.end()
+    spans: dict[str, SourceSpan] = {}
+    try:
+        while True:
+            while pos < len(text) and text[pos] in " \t\r\n,":
+                pos += 1
+            if pos >= len(text) or text[pos] != '"':
+                break
+            key, end = decoder.raw_decode(text, pos)
+            line = text.count("\n", 0, pos) + 1
+            spans.setdefault(str(key), SourceSpan(path, line, pos - (text.rfind("\n", 0, pos) + 1) + 1))
+            pos = end
+            while pos < len(text) and text[pos] in " \t\r\n:":
+                pos += 1
+            _, pos = decoder.raw_decode(text, pos)
+    except ValueError:
+        pass
+    return spans
+
+
 def _read_json(text: str, path: str, builder: SetBuilder) -> None:
     try:
         doc = json.loads(text)
@@ -221,17 +273,20 @@ def _read_json(text: str, path: str, builder: SetBuilder) -> None:
     known = doc.get("known", {})
     if not isinstance(known, dict):
         raise MeasurementFileError("'known' must map parameter names to values", top)
+    known_at = _json_key_spans(text, path, "known") if known else {}
     for name, value in known.items():
-        builder.known_value(name, value, None, top)
+        builder.known_value(name, value, None, known_at.get(name, top))
     configs = doc.get("configurations", {})
     if not isinstance(configs, dict):
         raise MeasurementFileError("'configurations' must map configuration names to {parameter: value}", top)
+    config_at = _json_key_spans(text, path, "configurations") if configs else {}
     for config, values in configs.items():
+        at = config_at.get(config, top)
         if not isinstance(values, dict):
-            raise MeasurementFileError(f"configuration '{config}' must map parameter names to values", top)
-        builder.configurations.setdefault(str(config), {})
+            raise MeasurementFileError(f"configuration '{config}' must map parameter names to values", at)
+        builder.configuration(str(config), at)
         for name, value in values.items():
-            builder.known_value(name, value, str(config), top)
+            builder.known_value(name, value, str(config), at)
     images = doc.get("images", {})
     if not isinstance(images, dict) or not all(isinstance(v, str) for v in images.values()):
         raise MeasurementFileError("'images' must map configuration names to image files", top)
@@ -241,6 +296,7 @@ def _read_json(text: str, path: str, builder: SetBuilder) -> None:
     if not isinstance(items, list):
         raise MeasurementFileError("'measurements' must be a list", top)
     offsets = _json_line_index(text)
+    allowed = _json_record_keys()
     for i, item in enumerate(items):
         if i < len(offsets):
             off = offsets[i]
@@ -252,8 +308,17 @@ def _read_json(text: str, path: str, builder: SetBuilder) -> None:
         if not isinstance(item, dict):
             raise MeasurementFileError(f"measurements[{i}] must be an object", where)
         record = {k.lower(): v for k, v in item.items()}
+        for key in record:
+            if key not in allowed:  # a typo ("sigam") would silently be the default
+                raise MeasurementFileError(f"unknown key '{key}'", where, hint=suggest(key, allowed))
         if "configuration" in record:
-            record["config"] = record.pop("configuration")
+            other = record.pop("configuration")
+            if record.get("config", other) != other:
+                raise MeasurementFileError(
+                    f"'config' ({record['config']!r}) and 'configuration' ({other!r}) name different configurations",
+                    where,
+                )
+            record["config"] = other
         builder.add(record, where, i + 1)
 
 

@@ -20,7 +20,7 @@ import numpy as np
 from mbcal.errors import MbcalError, MeasurementFileError, SourceSpan, suggest
 from mbcal.measurements.protocol import MeasurementModel
 from mbcal.measurements.registry import registry
-from mbcal.units import UNITS
+from mbcal.units import ANGLE, LENGTH, UNITS, Dim, describe
 
 __all__ = [
     "Columns",
@@ -266,16 +266,28 @@ class MeasurementSet:
 # ---- parsing helpers -------------------------------------------------------------------------------
 
 
-def parse_quantity(text: Any, where: SourceSpan | None, what: str, dimension: str | None = None) -> float:
+def parse_quantity(
+    text: Any,
+    where: SourceSpan | None,
+    what: str,
+    dimension: str | Dim | None = None,
+    *,
+    unit: str | None = None,
+    unit_where: SourceSpan | None = None,
+) -> float:
     """A number, or a string ``"12.5 deg"`` / ``"3cm"``, in SI units.
 
-    ``dimension`` (``length`` or ``angle``), when given, is checked against the unit.
+    ``dimension`` (``length``, ``angle``, or a :class:`~mbcal.units.Dim`), when given, is checked
+    against the unit.  ``unit``, when given, is the unit written beside the number (a CSV
+    file's ``unit`` cell, at ``unit_where``): the same units and checks as one written after
+    the number; the two may not disagree.
     """
     if isinstance(text, bool):
         raise MeasurementFileError(f"{what}: expected a number, got {text!r}", where)
+    beside = str(unit).strip() if unit is not None else ""
     if isinstance(text, (int, float)):
         value = float(text)
-        unit = None
+        written = None
     else:
         s = str(text).strip()
         m = re.fullmatch(
@@ -284,21 +296,34 @@ def parse_quantity(text: Any, where: SourceSpan | None, what: str, dimension: st
         if not m:
             raise MeasurementFileError(f"{what}: expected a number (with an optional unit), got {s!r}", where)
         value = float(m.group(1))
-        unit = m.group(2) or None
-        if unit is not None:
-            if unit not in UNITS:
-                raise MeasurementFileError(
-                    f"{what}: unknown unit '{unit}'", where, hint=suggest(unit, UNITS) or f"units: {', '.join(UNITS)}"
-                )
-            factor, dim = UNITS[unit]
-            if dimension == "length" and dim.length != 1:
-                raise MeasurementFileError(f"{what}: '{unit}' is not a length unit", where)
-            if dimension == "angle" and dim.angle != 1:
-                raise MeasurementFileError(f"{what}: '{unit}' is not an angle unit", where)
-            value *= factor
+        written = m.group(2) or None
+    if beside and written and beside != written:
+        raise MeasurementFileError(
+            f"{what}: {text!r} says '{written}' but the unit column says '{beside}'", unit_where or where
+        )
+    if beside:
+        value *= _unit_to_si(beside, unit_where or where, what, dimension)
+    elif written:
+        value *= _unit_to_si(written, where, what, dimension)
     if not math.isfinite(value):
         raise MeasurementFileError(f"{what}: value must be finite, got {text!r}", where)
     return value
+
+
+def _unit_to_si(unit: str, where: SourceSpan | None, what: str, dimension: str | Dim | None) -> float:
+    """The factor of ``unit`` to SI, checked against ``dimension`` (see :func:`parse_quantity`)."""
+    if unit not in UNITS:
+        raise MeasurementFileError(
+            f"{what}: unknown unit '{unit}'", where, hint=suggest(unit, UNITS) or f"units: {', '.join(UNITS)}"
+        )
+    factor, dim = UNITS[unit]
+    if dimension in ("length", LENGTH) and dim != LENGTH:
+        raise MeasurementFileError(f"{what}: '{unit}' is not a length unit", where)
+    if dimension in ("angle", ANGLE) and dim != ANGLE:
+        raise MeasurementFileError(f"{what}: '{unit}' is not an angle unit", where)
+    if isinstance(dimension, Dim) and dim != dimension:
+        raise MeasurementFileError(f"{what}: the unit '{unit}' does not fit {describe(dimension)}", where)
+    return factor
 
 
 def _number(text: Any, where: SourceSpan | None, what: str) -> float:
@@ -346,32 +371,64 @@ class SetBuilder:
         # of a million rows holds a handful of them, not a million.
         self._covariances: dict[tuple[str, tuple[float, ...]], np.ndarray] = {}
         self._configs: dict[str, str] = {}
+        # Where each configuration is first listed or used, and the parameters given for each (by
+        # full name; None: for every configuration): a per-configuration value given in some
+        # configurations must be given in all of them (see result()).
+        self._config_where: dict[str, SourceSpan | None] = {}
+        self._given: dict[str | None, dict[str, str]] = {}
         # Likewise the refs: 2,000 views of a 54-corner board name 54 (camera, point) pairs, not
         # 108,000 (a dict each was ~20 MB; nothing mutates a measurement's refs).
         self._refs: dict[tuple[tuple[str, str], ...], dict[str, str]] = {}
 
-    def known_value(self, name: str, value: Any, config: str | None, where: SourceSpan | None) -> None:
+    def configuration(self, config: str, where: SourceSpan | None) -> None:
+        """Note a configuration the file lists (with or without known values) and where."""
+        self.configurations.setdefault(config, {})
+        self._config_where.setdefault(config, where)
+
+    def known_value(
+        self,
+        name: str,
+        value: Any,
+        config: str | None,
+        where: SourceSpan | None,
+        unit: str | None = None,
+        unit_where: SourceSpan | None = None,
+    ) -> None:
+        """A known parameter value, for every configuration or for ``config``.
+
+        ``value`` is a number or a string with an optional unit (``"25 cm"``); ``unit`` is a
+        unit given beside it (a CSV ``known`` row's ``unit`` cell, located at ``unit_where``),
+        read by the same rules.
+        """
         if not name:
             raise MeasurementFileError("a 'known' row needs a parameter name in column 'param'", where)
         dimension = None
+        full = name
         if self.model is not None:
             try:
                 info = self.model.param(name)
             except MbcalError as err:
                 raise MeasurementFileError(err.message, where, hint=err.hint) from None
-            dimension = {"m": "length", "deg": "angle"}.get(info.unit)
+            full = info.name
+            dimension = info.dim
             if config and not info.per_configuration:
                 raise MeasurementFileError(
                     f"'{name}' is given for configuration '{config}' but is not declared 'per configuration' "
                     "in the model",
                     where,
                 )
-        v = parse_quantity(value, where, f"value of '{name}'", dimension)
-        target = self.configurations.setdefault(config, {}) if config else self.known
-        if name in target:
+        v = parse_quantity(value, where, f"value of '{name}'", dimension, unit=unit, unit_where=unit_where)
+        if config:
+            self.configuration(config, where)
+        target = self.configurations[config] if config else self.known
+        given = self._given.setdefault(config or None, {})
+        if full in given or name in target:
+            first = given.get(full, name)
+            also = f" (as '{first}')" if first != name else ""
             raise MeasurementFileError(
-                f"'{name}' is given twice" + (f" for configuration '{config}'" if config else ""), where
+                f"'{name}' is given twice{also}" + (f" for configuration '{config}'" if config else ""), where
             )
+        given[full] = name
         target[name] = v
 
     def add(self, record: Mapping[str, Any], where: SourceSpan | None, index: int) -> None:
@@ -399,7 +456,11 @@ class SetBuilder:
             raise MeasurementFileError(f"duplicate id '{mid}'" + (f" (first at {first})" if first else ""), where)
         self.ids[mid] = where
         config = str(record.get("config") or "").strip() or DEFAULT_CONFIG
-        config = self._configs.setdefault(config, config)  # one string per configuration
+        shared_config = self._configs.get(config)
+        if shared_config is None:  # one string per configuration
+            shared_config = self._configs[config] = config
+            self._config_where.setdefault(config, where)
+        config = shared_config
         refs: dict[str, str] = {}
         ref_index: dict[str, int] = {}
         for role in mm.roles:
@@ -517,7 +578,46 @@ class SetBuilder:
     def result(self) -> MeasurementSet:
         if not self.measurements:
             raise MeasurementFileError("no measurements", SourceSpan(self.path, 1, 1))
+        self._check_configurations()
         return MeasurementSet(self.measurements, self.known, self.configurations, self.path, self.images)
+
+    def _check_configurations(self) -> None:
+        """Refuse a per-configuration value given in some configurations but not in another
+        that the file lists or measures in: the parameter would silently keep the model's
+        nominal value there.  (A value given once for every configuration covers the others;
+        a parameter the file never gives keeps its nominal value everywhere.)"""
+        givers: dict[str, list[str]] = {}
+        for config, names in self._given.items():
+            if config is not None:
+                for full in names:
+                    givers.setdefault(full, []).append(config)
+        if not givers:
+            return
+        everywhere = self._given.get(None, {})
+        for config in dict.fromkeys([*self.configurations, *self._configs]):
+            have = self._given.get(config, {})
+            missing = [n for n in givers if n not in have and n not in everywhere]
+            if not missing:
+                continue
+            name = missing[0]
+            others = givers[name]
+            shown = ", ".join(f"'{c}'" for c in others[:3]) + (
+                f" and {len(others) - 3} more" if len(others) > 3 else ""
+            )
+            also = ""
+            if len(missing) > 1:
+                rest = ", ".join(f"'{n}'" for n in missing[1:4]) + (", ..." if len(missing) > 4 else "")
+                also = f" (nor for {rest})"
+            listed = "" if config in self.configurations else ", which measurements are taken in,"
+            raise MeasurementFileError(
+                f"configuration '{config}'{listed} gives no value for '{name}'{also}, which "
+                f"{'configuration' if len(others) == 1 else 'configurations'} {shown} "
+                f"{'gives' if len(others) == 1 else 'give'}: a per-configuration value must be given in every "
+                "configuration, or it would silently take the model's nominal value there",
+                self._config_where.get(config),
+                hint=f"give '{name}' in configuration '{config}' too, or once without a configuration as its "
+                "value in every configuration that does not give its own",
+            )
 
 
 def merge_measurements(sets: Sequence[MeasurementSet]) -> MeasurementSet:
@@ -558,7 +658,7 @@ def measurements_from_records(
     for name, value in (known or {}).items():
         builder.known_value(name, value, None, None)
     for config, values in (configurations or {}).items():
-        builder.configurations.setdefault(config, {})
+        builder.configuration(config, None)
         for name, value in values.items():
             builder.known_value(name, value, config, None)
     for i, record in enumerate(records):
