@@ -317,6 +317,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
         raise MbcalError("solve needs measurement files (.csv, .json) or scans (--scan FILE)")
     inputs = [args.model, *files, *scans]
     check_size(args.restarts)  # before reading anything
+    _check_sigmas(args)
     fit = _fit_config(args)
     _check_outputs(args, inputs)
     progress = Progress(not args.quiet)
@@ -735,7 +736,7 @@ def _register_commands(sub) -> None:
         2 bad input (with file:line:col).
         """,
         """
-        mbcal solve models/teleexistence.mdl measurements/room.csv --estimate 'room.*' \\
+        mbcal solve models/teleexistence.mdl room.csv --estimate 'room.*' \\
             --restarts 32 --json report.json --write-model calibrated.mdl --overlay overlays/
         mbcal solve models/room_depth.mdl clicks.csv depth_0000.png --estimate 'room.*' --restarts 4
         """,
@@ -1122,13 +1123,22 @@ def _register_commands(sub) -> None:
 # ---- fit / watch (range data) --------------------------------------------------------------------------
 
 
+def _check_sigmas(args: argparse.Namespace) -> None:
+    """--sigma and --scan-sigma of range data: a σ divides the residuals, so zero is not one."""
+    for name in ("sigma", "scan_sigma"):
+        v = getattr(args, name, None)
+        if v is not None and not (v > 0 and v < float("inf")):
+            raise MbcalError(f"--{name.replace('_', '-')} must be a positive number of metres, got {v}")
+
+
 def _fit_options(args: argparse.Namespace):
     from mbcal.range.fit import FitOptions  # lazy: keeps JAX out of 'mbcal check'
 
-    for name in ("voxel", "crop", "sigma"):
+    for name in ("voxel", "crop"):
         v = getattr(args, name, None)
         if v is not None and not (v >= 0 and v < float("inf")):
             raise MbcalError(f"--{name} must be a non-negative number of metres, got {v}")
+    _check_sigmas(args)
     return FitOptions(
         voxel=args.voxel, crop=args.crop, loss=args.loss, restarts=args.restarts, seed=args.seed, coarse=args.coarse
     )
@@ -1268,7 +1278,12 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit status."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:
+        # An option the command does not know: its own usage, not the top-level one.
+        (_subparser(parser, getattr(args, "command", None)) or parser).error(
+            f"unrecognized arguments: {' '.join(extra)}"
+        )
     if not getattr(args, "func", None):
         parser.print_help()
         return EXIT_BAD_INPUT
@@ -1301,6 +1316,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_BAD_INPUT
     finally:
         restore()
+
+
+def _subparser(parser: argparse.ArgumentParser, command: str | None) -> argparse.ArgumentParser | None:
+    """The parser of ``command`` (for its usage line in an error)."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction) and command in action.choices:
+            return action.choices[command]
+    return None
 
 
 def _watch_interrupts() -> Callable[[], None]:

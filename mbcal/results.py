@@ -567,7 +567,9 @@ def result_text(r: CalibrationResult, *, max_residuals: int = 15) -> str:
     out = []
     solver = r.solver
     head = "converged" if r.converged else "NOT converged"
-    out.append(f"{head}: {r.status.message}")
+    message = r.status.message
+    # "converged: converged: ..." said it twice: the status's message starts with its verdict
+    out.append(message if r.converged and message.startswith("converged:") else f"{head}: {message}")
     rms = ", ".join(
         f"{k} {v:.4g} {'px' if k == 'image_point' else ('rad' if k == 'angle' else 'm')}" for k, v in r.rms.items()
     )

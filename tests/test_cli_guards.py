@@ -138,3 +138,29 @@ def test_a_model_written_from_an_untrustworthy_fit_says_so_in_its_header(tmp_pat
     result = run("solve", LEVER, clicks, "--estimate", "lever.angle", "-q", "--write-model", good)
     assert result.returncode == 0, result.stderr
     assert "TRUSTWORTHY" not in good.read_text()
+
+
+def test_an_unknown_option_gets_the_commands_own_usage():
+    result = run("solve", LEVER, "--bogus")
+    assert result.returncode == 2
+    assert (
+        "usage: mbcal solve" in result.stderr and "mbcal solve: error: unrecognized arguments: --bogus" in result.stderr
+    )
+
+
+def test_an_unknown_camera_lists_the_models_cameras(tmp_path):
+    result = run("render", LEVER, "--camera", "nope", "-o", tmp_path / "x.png")
+    assert result.returncode == 2 and "no camera named 'nope' (the model's cameras: eye)" in result.stderr
+
+
+def test_the_report_says_converged_once(clicks):
+    result = run("solve", LEVER, clicks, "--estimate", "lever.angle")
+    assert result.returncode == 0, result.stderr
+    assert "converged: S changed" in result.stdout and "converged: converged" not in result.stdout
+
+
+def test_a_zero_scan_sigma_is_refused(tmp_path):
+    result = run("fit", MODELS / "room_depth.mdl", tmp_path / "scan.png", "--estimate", "room.*", "--sigma", "0")
+    assert result.returncode == 2 and "--sigma must be a positive number of metres, got 0.0" in result.stderr
+    result = run("solve", MODELS / "room_depth.mdl", tmp_path / "s.png", "--estimate", "room.*", "--scan-sigma", "0")
+    assert result.returncode == 2 and "--scan-sigma must be a positive number of metres" in result.stderr

@@ -257,7 +257,12 @@ class Model:
                     f"'{name}' is ambiguous: it could be the {what} {shown}", hint="give more of the dotted path"
                 )
         hint = suggest(name, table)
-        available = "" if hint else f" (the model has {len(table)} {what}s)"
+        names = list(table)
+        if hint or not names:
+            available = "" if hint else f" (the model has no {what})"
+        else:
+            shown = ", ".join(names[:8]) + (f", ... ({len(names)} in all)" if len(names) > 8 else "")
+            available = f" (the model's {what}s: {shown})"
         error = ParameterError if what == "param" else UnknownNameError
         raise error(f"the model has no {what} named '{name}'{available}", hint=hint)
 
@@ -316,8 +321,13 @@ class Model:
     def target(self, name: str | None = None) -> TargetInfo:
         """A target by name (a unique suffix is enough); the only one when ``name`` is None."""
         if name is None:
-            if len(self.targets) != 1:
-                listing = ", ".join(t.name for t in self.targets) or "none"
+            if not self.targets:
+                raise UnknownNameError(
+                    "the model has no calibration target",
+                    hint="describe the target: target NAME = chessboard(...) or squares(...) (docs/language.md)",
+                )
+            if len(self.targets) > 1:
+                listing = ", ".join(t.name for t in self.targets)
                 raise UnknownNameError(f"the model has {len(self.targets)} targets ({listing}); name one")
             return self.targets[0]
         full = self.resolve("frame", name)
