@@ -83,6 +83,9 @@ class ParameterSet:
         Names of the configurations (default: one, called ``default``).
     per_configuration : mapping, optional
         ``{config: {name: value}}``: known per-configuration values (joint readings).
+    overrides : mapping, optional
+        Like ``known``, but applied last, over ``per_configuration`` too: the values a user gives
+        beside a measurement file (the command line's ``--set``, ``name@config`` included).
 
     Raises
     ------
@@ -100,6 +103,7 @@ class ParameterSet:
         known: Mapping[str, float] | None = None,
         configurations: Sequence[str] | None = None,
         per_configuration: Mapping[str, Mapping[str, float]] | None = None,
+        overrides: Mapping[str, float] | None = None,
     ):
         self.model = model
         configs = list(configurations) if configurations else [DEFAULT_CONFIGURATION]
@@ -109,24 +113,19 @@ class ParameterSet:
         self._config_index = {c: i for i, c in enumerate(configs)}
         n = len(model.params)
         base = np.tile(model.nominal, (len(configs), 1))
-        for key, value in (known or {}).items():
-            name, config = _split(key)
-            i = model.param_index(name)
-            rows = [self._config(config, key)] if config is not None else list(range(len(configs)))
-            if config is not None and not model.params[i].per_configuration:
-                raise ParameterError(f"'{name}' is not declared 'per configuration'; set it without '@{config}'")
-            base[rows, i] = _finite(value, key)
-        for config, values in (per_configuration or {}).items():
-            row = self._config(config, config)
+        self._set(base, known)
+        for given, values in (per_configuration or {}).items():
+            row = self._config(given, given)
             for name, value in values.items():
                 i = model.param_index(name)
                 if not model.params[i].per_configuration:
                     raise ParameterError(
-                        f"configuration '{config}' gives a value for '{name}', which is not declared "
+                        f"configuration '{given}' gives a value for '{name}', which is not declared "
                         "'per configuration' in the model",
                         hint=f"declare it as 'param {name} = ... per configuration'",
                     )
-                base[row, i] = _finite(value, f"{name}@{config}")
+                base[row, i] = _finite(value, f"{name}@{given}")
+        self._set(base, overrides)
         self.known = base  # (C, n): the known values, and initial values of the unknowns
 
         unknowns: list[Unknown] = []
@@ -191,6 +190,16 @@ class ParameterSet:
                 hint=suggest(name, self._config_index) or f"configurations: {', '.join(self.configurations)}",
             )
         return self._config_index[name]
+
+    def _set(self, base: np.ndarray, values: Mapping[str, float] | None) -> None:
+        """Write ``{name or name@config: value}`` into the (C, n) table of values."""
+        for key, value in (values or {}).items():
+            name, config = _split(key)
+            i = self.model.param_index(name)
+            rows = [self._config(config, key)] if config is not None else list(range(len(self.configurations)))
+            if config is not None and not self.model.params[i].per_configuration:
+                raise ParameterError(f"'{name}' is not declared 'per configuration'; set it without '@{config}'")
+            base[rows, i] = _finite(value, key)
 
     @property
     def names(self) -> list[str]:

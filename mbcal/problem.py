@@ -91,9 +91,10 @@ class Problem:
         self.params = ParameterSet(
             model,
             list(estimate),
-            known={**measurements.known, **(known or {})},
+            known=measurements.known,
             configurations=columns.config_names,
             per_configuration=measurements.configurations,
+            overrides=known,  # the caller's values win over the file's, per configuration too
         )
         groups: list[Group] = []
         start = 0

@@ -33,6 +33,20 @@ def test_param_maps_x_into_every_configuration_and_back():
     np.testing.assert_array_equal(ps.from_dict({"arm.offset4": 0.5}), [0.0, 0.5])
 
 
+def test_the_callers_values_override_a_files_per_configuration_values():
+    """Precedence: the model's nominal < a file's value for every configuration < the file's value
+    for one configuration < the caller's (the command line's --set), globally or @config."""
+    model = load_model(MODELS / "arm7.mdl")
+    q1, q2 = model.param_index("arm.q1"), model.param_index("arm.q2")
+    readings = {"a": {"arm.q1": 0.1}, "b": {"arm.q1": 0.2}}
+    ps = ParameterSet(model, [], known={"arm.q1": 0.7, "arm.q2": 0.3}, configurations=["a", "b", "c"],
+                      per_configuration=readings, overrides={"arm.q1@b": -0.5})  # fmt: skip
+    np.testing.assert_array_equal(ps.known[:, q1], [0.1, -0.5, 0.7])
+    np.testing.assert_array_equal(ps.known[:, q2], [0.3, 0.3, 0.3])
+    ps = ParameterSet(model, [], configurations=["a", "b"], per_configuration=readings, overrides={"arm.q1": 0.9})
+    np.testing.assert_array_equal(ps.known[:, q1], [0.9, 0.9])
+
+
 def test_per_configuration_unknowns_get_one_copy_per_configuration():
     model = load_model_text("param target.x = 0 m per configuration\nparam f = 500\n")
     ps = ParameterSet(model, ["target.x", "f"], configurations=["v1", "v2", "v3"])

@@ -692,7 +692,9 @@ def fit_scans(
     except ValueError:
         raise SolverError(f"unknown loss '{o.loss}' (cauchy, huber or linear)") from None
     configs = list(dict.fromkeys(s.config for s in scans))
-    ps = ParameterSet(model, list(estimate), known=o.known, configurations=configs, per_configuration=per_configuration)
+    ps = ParameterSet(
+        model, list(estimate), configurations=configs, per_configuration=per_configuration, overrides=o.known
+    )
     if ps.size == 0:
         raise SolverError("nothing to estimate: name the unknowns (--estimate NAME|GLOB)")
     pair_keys: list[tuple[int, int]] = []
