@@ -170,7 +170,12 @@ class UnknownNameError(ParameterError):
 
 
 class MeasurementFileError(MbcalError):
-    """A measurement or plan file is malformed."""
+    """A measurement or plan file is malformed.  ``field``: the column (CSV) or key (JSON) the
+    error is about, when it is about one: a CSV reader points at that cell."""
+
+    def __init__(self, message: str, span: SourceSpan | None = None, hint: str | None = None, field: str | None = None):
+        self.field = field
+        super().__init__(message, span, hint)
 
 
 class SolverError(MbcalError):

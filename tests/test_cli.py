@@ -130,7 +130,7 @@ def test_bad_measurement_file_exits_2_with_location_and_writes_nothing(tmp_path)
     result = run("solve", ROOM, bad, "--estimate", "room.*", "--json", report, cwd=tmp_path)
     assert result.returncode == 2
     assert any(
-        line.startswith(f"{bad}:3:1: 'point': the model has no point named 'lever.tpi'")
+        line.startswith(f"{bad}:3:23: 'point': the model has no point named 'lever.tpi'")
         for line in result.stderr.splitlines()
     )
     assert "did you mean 'room.valve.lever.tip'" in result.stderr

@@ -116,22 +116,22 @@ def test_write_then_read_round_trips(tmp_path, arm, suffix):
 CSV_ERRORS = {
     "unknown_point_suggests": (
         "kind,camera,point,u,v\nimage_point,left,lever.tpi,1,2\n",
-        "m.csv:2:1: 'point': the model has no point named 'lever.tpi'",
+        "m.csv:2:18: 'point': the model has no point named 'lever.tpi'",
         "room.valve.lever.tip",
     ),
     "unknown_camera": (
         "kind,camera,point,u,v\nimage_point,middle,lever.tip,1,2\n",
-        "m.csv:2:1: 'camera': the model has no camera named 'middle'",
+        "m.csv:2:13: 'camera': the model has no camera named 'middle'",
         None,
     ),
     "nan_value": (
         "kind,camera,point,u,v\nimage_point,left,lever.tip,nan,2\n",
-        "m.csv:2:1: value 'u': must be finite, got 'nan'",
+        "m.csv:2:28: value 'u': must be finite, got 'nan'",
         None,
     ),
     "inf_value": (
         "kind,camera,point,u,v\nimage_point,left,lever.tip,1,inf\n",
-        "m.csv:2:1: value 'v': must be finite, got 'inf'",
+        "m.csv:2:30: value 'v': must be finite, got 'inf'",
         None,
     ),
     "missing_column_kind": (
@@ -146,7 +146,7 @@ CSV_ERRORS = {
     ),
     "half_a_value": (
         "kind,camera,point,u,v\nimage_point,left,lever.tip,1,\n",
-        "m.csv:2:1: 'image_point' needs all of u, v; missing v",
+        "m.csv:2:30: 'image_point' needs all of u, v; missing v",
         None,
     ),
     "duplicate_id": (
@@ -161,17 +161,17 @@ CSV_ERRORS = {
     ),
     "bad_sigma": (
         "kind,camera,point,u,v,sigma\nimage_point,left,lever.tip,1,2,-1\n",
-        "m.csv:2:1: sigma must be positive, got '-1'",
+        "m.csv:2:32: sigma must be positive, got '-1'",
         None,
     ),
     "wrong_unit": (
         "kind,camera,point,u,v,unit\nimage_point,left,lever.tip,1,2,mm\n",
-        "m.csv:2:1: 'image_point' values are in pixels; unit 'mm' does not apply",
+        "m.csv:2:32: 'image_point' values are in pixels; unit 'mm' does not apply",
         None,
     ),
     "not_a_number": (
         "kind,camera,point,u,v\nimage_point,left,lever.tip,one,2\n",
-        "m.csv:2:1: value 'u': expected a number, got 'one'",
+        "m.csv:2:28: value 'u': expected a number, got 'one'",
         None,
     ),
     "too_many_fields": (
@@ -522,3 +522,23 @@ def test_per_configuration_values_given_everywhere_or_nowhere_are_read(tmp_path,
     doc = {"known": {"arm.q4": 0.5}, "configurations": {"c2": {"arm.q4": 0.2}}, "measurements": records}
     ms = read_measurements(write(tmp_path, "default.json", json.dumps(doc)), arm)
     assert ms.known == {"arm.q4": 0.5} and ms.configurations == {"c2": {"arm.q4": 0.2}}
+
+
+@pytest.mark.parametrize(
+    ("row", "column", "message"),
+    [
+        ("m1,image_point,eye,lever.hub,nan,3,1", 30, "value 'u': must be finite"),
+        ("m1,image_point,eye,lever.hubb,3,3,1", 20, "no point named 'lever.hubb'"),
+        ("m1,image_point,eye,lever.hub,3,3,-1", 34, "sigma must be positive"),
+        ("m1,image_pont,eye,lever.hub,3,3,1", 4, "unknown measurement kind 'image_pont'"),
+        ("m1,image_point,,lever.hub,3,3,1", 16, "needs 'camera'"),
+        ("m1,image_point,eye,lever.hub,3,,1", 32, "missing v"),
+    ],
+)
+def test_a_csv_error_about_one_cell_points_at_that_cell(tmp_path, row, column, message):
+    path = tmp_path / "bad.csv"
+    path.write_text("id,kind,camera,point,u,v,sigma\n" + row + "\n")
+    with pytest.raises(MeasurementFileError) as info:
+        read_measurements(path, load_model(MODELS / "lever.mdl"))
+    assert message in info.value.message
+    assert (info.value.span.line, info.value.span.column) == (2, column)

@@ -190,7 +190,17 @@ def _read_csv(handle, path: str, builder: SetBuilder) -> None:
                 unit_where=unit_where,
             )
             continue
-        builder.add(record, where, len(builder.measurements) + 1)
+        try:
+            builder.add(record, where, len(builder.measurements) + 1)
+        except MeasurementFileError as err:
+            # An error about one cell points at that cell, not at the row (found only on error:
+            # the columns of a row cost a scan of its line).
+            if err.field in header and err.span == where:
+                cells = _field_columns(lines.last.rstrip("\r\n"), len(row))
+                column = header.index(err.field)
+                if column < len(cells):
+                    err.span = SourceSpan(path, line_no, cells[column])
+            raise
     if header is None:
         raise MeasurementFileError("empty file: no header row", SourceSpan(path, 1, 1))
 

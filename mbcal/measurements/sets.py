@@ -326,15 +326,15 @@ def _unit_to_si(unit: str, where: SourceSpan | None, what: str, dimension: str |
     return factor
 
 
-def _number(text: Any, where: SourceSpan | None, what: str) -> float:
+def _number(text: Any, where: SourceSpan | None, what: str, field: str | None = None) -> float:
     if isinstance(text, bool) or text is None:
-        raise MeasurementFileError(f"{what}: expected a number, got {text!r}", where)
+        raise MeasurementFileError(f"{what}: expected a number, got {text!r}", where, field=field)
     try:
         value = float(text)
     except (TypeError, ValueError):
-        raise MeasurementFileError(f"{what}: expected a number, got {text!r}", where) from None
+        raise MeasurementFileError(f"{what}: expected a number, got {text!r}", where, field=field) from None
     if not math.isfinite(value):
-        raise MeasurementFileError(f"{what}: must be finite, got {text!r}", where)
+        raise MeasurementFileError(f"{what}: must be finite, got {text!r}", where, field=field)
     return value
 
 
@@ -345,12 +345,14 @@ def _unit_factor(unit: str | None, mm: MeasurementModel, where: SourceSpan | Non
     if dim == "pixel":
         if unit in _PIXEL_UNITS:
             return 1.0
-        raise MeasurementFileError(f"'{mm.kind}' values are in pixels; unit '{unit}' does not apply", where)
+        raise MeasurementFileError(
+            f"'{mm.kind}' values are in pixels; unit '{unit}' does not apply", where, field="unit"
+        )
     if unit not in UNITS:
-        raise MeasurementFileError(f"unknown unit '{unit}'", where, hint=suggest(unit, UNITS))
+        raise MeasurementFileError(f"unknown unit '{unit}'", where, hint=suggest(unit, UNITS), field="unit")
     if unit not in _DIMENSION_UNITS.get(dim, set()):
         kind = {"length": "a length", "angle": "an angle"}.get(dim, "a plain number")
-        raise MeasurementFileError(f"'{mm.kind}' values are {kind}; unit '{unit}' does not fit", where)
+        raise MeasurementFileError(f"'{mm.kind}' values are {kind}; unit '{unit}' does not fit", where, field="unit")
     return UNITS[unit][0]
 
 
@@ -434,12 +436,13 @@ class SetBuilder:
     def add(self, record: Mapping[str, Any], where: SourceSpan | None, index: int) -> None:
         kind = str(record.get("kind") or "").strip()
         if not kind:
-            raise MeasurementFileError("missing 'kind'", where)
+            raise MeasurementFileError("missing 'kind'", where, field="kind")
         if kind not in self.models:
             raise MeasurementFileError(
                 f"unknown measurement kind '{kind}' (available: {', '.join(sorted(self.models))})",
                 where,
                 hint=suggest(kind, self.models),
+                field="kind",
             )
         if self.declared and kind not in self.declared:
             raise MeasurementFileError(
@@ -447,13 +450,16 @@ class SetBuilder:
                 "of them",
                 where,
                 hint="add it to the model's 'measure' statement if it is meant",
+                field="kind",
             )
         mm = self.models[kind]
         kind = mm.kind  # one string shared by every measurement of the kind
         mid = str(record.get("id") or "").strip() or f"{kind}{index}"
         if mid in self.ids:
             first = self.ids[mid]
-            raise MeasurementFileError(f"duplicate id '{mid}'" + (f" (first at {first})" if first else ""), where)
+            raise MeasurementFileError(
+                f"duplicate id '{mid}'" + (f" (first at {first})" if first else ""), where, field="id"
+            )
         self.ids[mid] = where
         config = str(record.get("config") or "").strip() or DEFAULT_CONFIG
         shared_config = self._configs.get(config)
@@ -466,7 +472,9 @@ class SetBuilder:
         for role in mm.roles:
             name = str(record.get(role.name) or "").strip() or role.default
             if not name:
-                raise MeasurementFileError(f"'{kind}' needs '{role.name}' (a {role.lookup} name)", where)
+                raise MeasurementFileError(
+                    f"'{kind}' needs '{role.name}' (a {role.lookup} name)", where, field=role.name
+                )
             if self.model is not None:
                 table = "frame" if role.lookup == "object" else role.lookup
                 try:
@@ -475,7 +483,9 @@ class SetBuilder:
                         self.model.frame_index(full) if table == "frame" else self.model._lookup(table, full)
                     )
                 except MbcalError as err:
-                    raise MeasurementFileError(f"'{role.name}': {err.message}", where, hint=err.hint) from None
+                    raise MeasurementFileError(
+                        f"'{role.name}': {err.message}", where, hint=err.hint, field=role.name
+                    ) from None
                 refs[role.name] = full
             else:
                 refs[role.name] = name
@@ -483,10 +493,10 @@ class SetBuilder:
         for key in mm.data:
             raw = record.get(key)
             if raw is None or (isinstance(raw, str) and not raw.strip()):
-                raise MeasurementFileError(f"'{kind}' needs '{key}'", where)
-            v = _number(raw, where, f"'{key}'")
+                raise MeasurementFileError(f"'{kind}' needs '{key}'", where, field=key)
+            v = _number(raw, where, f"'{key}'", key)
             if key in mm.integer_data and v != int(v):
-                raise MeasurementFileError(f"'{key}' must be a whole number, got {raw!r}", where)
+                raise MeasurementFileError(f"'{key}' must be a whole number, got {raw!r}", where, field=key)
             data[key] = v
         unit = str(record.get("unit") or "").strip() or None
         factor = _unit_factor(unit, mm, where)
@@ -515,7 +525,9 @@ class SetBuilder:
                 listed = [listed]
             if len(listed) != mm.size:
                 raise MeasurementFileError(
-                    f"'{mm.kind}' has {mm.size} values ({', '.join(mm.values)}), got {len(listed)}", where
+                    f"'{mm.kind}' has {mm.size} values ({', '.join(mm.values)}), got {len(listed)}",
+                    where,
+                    field="value",
                 )
             raw = list(listed)
         else:
@@ -530,9 +542,11 @@ class SetBuilder:
         if not all(present):
             missing = [n for n, p in zip(mm.values, present) if not p]
             raise MeasurementFileError(
-                f"'{mm.kind}' needs all of {', '.join(mm.values)}; missing {', '.join(missing)}", where
+                f"'{mm.kind}' needs all of {', '.join(mm.values)}; missing {', '.join(missing)}",
+                where,
+                field=missing[0],
             )
-        return np.array([_number(r, where, f"value '{n}'") * factor for r, n in zip(raw, mm.values)])
+        return np.array([_number(r, where, f"value '{n}'", n) * factor for r, n in zip(raw, mm.values)])
 
     def _covariance(self, record, mm: MeasurementModel, where, factor: float) -> np.ndarray:
         size = mm.size
@@ -540,31 +554,31 @@ class SetBuilder:
             raw = record["cov"]
             if isinstance(raw, str):
                 raw = [p for p in re.split(r"[;\s]+", raw.strip()) if p]
-            flat = np.array([_number(v, where, "'cov'") for v in np.ravel(np.asarray(raw, dtype=object))])
+            flat = np.array([_number(v, where, "'cov'", "cov") for v in np.ravel(np.asarray(raw, dtype=object))])
             if flat.size != size * size:
                 raise MeasurementFileError(
-                    f"'cov' must have {size}×{size} = {size * size} entries, got {flat.size}", where
+                    f"'cov' must have {size}×{size} = {size * size} entries, got {flat.size}", where, field="cov"
                 )
             cov = flat.reshape(size, size) * factor * factor
             if not np.allclose(cov, cov.T, rtol=1e-9, atol=0):
-                raise MeasurementFileError("'cov' must be symmetric", where)
+                raise MeasurementFileError("'cov' must be symmetric", where, field="cov")
             if np.any(np.linalg.eigvalsh(cov) <= 0):
-                raise MeasurementFileError("'cov' must be positive definite", where)
+                raise MeasurementFileError("'cov' must be positive definite", where, field="cov")
             return cov
         sigmas = []
         common = record.get("sigma")
         for name in mm.values:
-            raw = record.get(f"sigma_{name}")
+            raw, column = record.get(f"sigma_{name}"), f"sigma_{name}"
             if raw in (None, ""):
-                raw = common
+                raw, column = common, "sigma"
             if isinstance(raw, (list, tuple)):
-                raise MeasurementFileError("'sigma' is one number; use 'cov' for a matrix", where)
+                raise MeasurementFileError("'sigma' is one number; use 'cov' for a matrix", where, field=column)
             if raw in (None, ""):
                 sigmas.append(mm.default_sigma)
                 continue
-            s = _number(raw, where, "'sigma'") * factor
+            s = _number(raw, where, "'sigma'", column) * factor
             if not s > 0:
-                raise MeasurementFileError(f"sigma must be positive, got {raw!r}", where)
+                raise MeasurementFileError(f"sigma must be positive, got {raw!r}", where, field=column)
             sigmas.append(s)
         key = (mm.kind, tuple(sigmas))
         shared = self._covariances.get(key)
