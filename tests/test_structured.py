@@ -323,6 +323,25 @@ def test_the_report_from_the_blocks_equals_the_dense_report(camera20):
 
 
 @pytest.mark.slow
+def test_weak_directions_by_blocks_find_the_dense_ones(camera20, monkeypatch):
+    """Beyond WEAK_EXACT tested unknowns the blocks' verdict looks for weak directions in each
+    view's block with the shared unknowns (forced here for 20 views): the same weak direction as
+    the dense verdict, with σ within a percent (each block's marginal holds the shared one's)."""
+    import mbcal.structured as structured
+
+    model, data, problem, _ = camera20
+    start = initial_values(model, data, problem.params.names)
+    estimate = default_unknowns(model, data)
+    dense = mbcal.calibrate(model, data, estimate, restarts=1, initial=start, analysis="dense")
+    monkeypatch.setattr(structured, "WEAK_EXACT", 0)
+    ours = mbcal.calibrate(model, data, estimate, restarts=1, initial=start, analysis="structured")
+    u, v = dense.verdict, ours.verdict
+    assert [w.names[:2] for w in v.weak] == [w.names[:2] for w in u.weak] == [("cam.k3", "cam.k2")]
+    assert v.weak[0].sigma == pytest.approx(u.weak[0].sigma, rel=1e-2)
+    assert v.well_determined == u.well_determined and v.condition == pytest.approx(u.condition, rel=1e-6)
+
+
+@pytest.mark.slow
 def test_the_verdicts_linear_algebra_from_the_blocks_equals_the_dense_one():
     """StructuredLinear (the fit verdict's refit and deletion statistics without the m × n matrix)
     against fit._Linear on 12 views from Zhang's start: S, rank, and the drop of S when a view
