@@ -1083,6 +1083,9 @@ def _register_commands(sub) -> None:
     p.add_argument("scans", metavar="SCAN", nargs="+", help="point clouds or depth images")
     _range_arguments(p)
     p.add_argument("--out", metavar="DIR", help="folder for the calibrated model, the outliers PLY and the report")
+    p.add_argument(
+        "--json", metavar="FIT.json", help="the fit as JSON ('-': stdout; mbcal/schemas/scan_fit.schema.json)"
+    )
     _quiet_option(p, "print nothing (use the exit status)")
 
     p = _add(
@@ -1160,6 +1163,7 @@ def _range_arguments(p: argparse.ArgumentParser) -> None:
 def cmd_fit(args: argparse.Namespace) -> int:
     from mbcal.range.manager import fit_files  # lazy: keeps JAX out of 'mbcal check'
 
+    _check_outputs(args, [args.model, *args.scans])
     fit, written = fit_files(
         args.model,
         args.scans,
@@ -1170,10 +1174,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
         frame=args.frame,
         sigma=args.sigma,
     )
-    if not args.quiet:
-        print(fit.text())
-        for path in written:
-            print(f"wrote {path}")
+    if args.json:
+        _write_json(fit.to_json(), args.json, [args.model, *args.scans])
+    _say(args, fit.text() + "".join(f"\nwrote {path}" for path in written))
     return 0 if fit.ok else 1
 
 

@@ -79,3 +79,36 @@ def test_solve_clicks_and_a_depth_png_together(tmp_path, capsys):
     ids = {r["id"] for r in result["residuals"]}
     assert any(i.startswith("scan1.") for i in ids) and any(i.startswith("scan2.") for i in ids)
     assert {r["kind"] for r in result["residuals"]} == {"image_point", "point_to_surface"}
+
+
+@pytest.mark.slow
+def test_fit_writes_its_json_by_the_schema(tmp_path, capsys):
+    """`mbcal fit --json`: the fit for machines, SI units named, valid against its schema; with
+    '-' the JSON is stdout and the human report goes to stderr."""
+    from importlib import resources
+
+    import jsonschema
+
+    from mbcal.range.simulate import add_depth_noise, render_depth
+
+    model = mbcal.load_model(ROOM)
+    write_depth_png(tmp_path / "depth.png", add_depth_noise(render_depth(model, TRUTH), 1e-3, 1e-3, seed=2))
+    schema = json.loads((resources.files("mbcal") / "schemas" / "scan_fit.schema.json").read_text())
+    out = tmp_path / "fit.json"
+    code = main(["fit", ROOM, str(tmp_path / "depth.png"), "--estimate", "room.*", "--json", str(out), "--out",
+                 str(tmp_path / "fitted")])  # fmt: skip
+    assert code == 0, capsys.readouterr().err
+    doc = json.loads(out.read_text())
+    jsonschema.validate(doc, schema)
+    assert doc["format"] == "mbcal-scan-fit-1" and doc["units"]["room.yaw"] == "rad" and doc["units"]["room.x"] == "m"
+    for name, truth in TRUTH.items():
+        assert abs(doc["values"][name] - truth) < 4 * doc["std"][name], name
+    # the report written beside the calibrated model is the same document
+    beside = json.loads((tmp_path / "fitted" / "room_depth.fit.json").read_text())
+    jsonschema.validate(beside, schema)
+    assert beside["values"] == doc["values"]
+    capsys.readouterr()
+    assert main(["fit", ROOM, str(tmp_path / "depth.png"), "--estimate", "room.*", "--json", "-"]) == 0
+    captured = capsys.readouterr()
+    jsonschema.validate(json.loads(captured.out), schema)
+    assert "room.x" in captured.err

@@ -154,6 +154,12 @@ class Misfit:
         )
 
 
+SCAN_FIT_FORMAT = "mbcal-scan-fit-1"
+"""The ``format`` of a scan fit's JSON (mbcal/schemas/scan_fit.schema.json)."""
+
+_SI_UNIT = {"deg": "rad"}  # a parameter shown in degrees has its value in radians
+
+
 @dataclass
 class ScanFit:
     """What a scan fit found."""
@@ -268,10 +274,14 @@ class ScanFit:
         return "\n".join(lines)
 
     def to_json(self) -> dict[str, Any]:
+        """The fit for machines (``MODEL.fit.json``, ``mbcal fit --json``): values and σ in SI
+        units, named in ``units``; mbcal/schemas/scan_fit.schema.json describes every field."""
         std = self.std
         return {
+            "format": SCAN_FIT_FORMAT,
             "values": self.values,
             "std": std,
+            "units": {n: _SI_UNIT.get(self.units.get(n, ""), self.units.get(n, "")) for n in self.names},
             "chi2": self.chi2,
             "dof": self.dof,
             "reduced_chi2": self.reduced_chi2,
