@@ -374,3 +374,19 @@ def test_mbcal_check_reports_a_bad_urdf_without_a_traceback(tmp_path):
     )
     assert done.returncode == 2
     assert "bad.urdf:1:" in done.stderr and "Traceback" not in done.stderr
+
+
+def test_a_value_the_urdf_reader_cannot_take_is_located_at_its_attribute(tmp_path):
+    text = ARM.read_text()
+    start = text.index('xyz="') + len('xyz="')
+    words = text[start : text.index('"', start)].split()
+    bad = text[:start] + " ".join([words[0], "abc", *words[2:]]) + text[start + len(" ".join(words)) :]
+    path = tmp_path / "bad.urdf"
+    path.write_text(bad)
+    line = bad[:start].count("\n") + 1
+    column = start - bad.rfind("\n", 0, start) + len(words[0]) + 1
+    with pytest.raises(MdlError) as info:
+        mbcal.load_model(path)
+    assert "could not convert string to float: 'abc'" in info.value.message
+    assert (info.value.span.line, info.value.span.column) == (line, column)
+    assert bad.splitlines()[line - 1][column - 1 : column + 2] == "abc"

@@ -104,6 +104,28 @@ def _identifier(name: str, taken: set[str], avoid: frozenset[str] | set[str] = f
     return candidate
 
 
+def _value_in_attributes(path: Path, root: Any, message: str) -> SourceSpan | None:
+    """Where the value a URDF reader could not take (``could not convert string to float: 'abc'``)
+    is written: the first attribute holding it as one of its words (lxml knows the element's
+    line; the column is found on that line)."""
+    quoted = re.search(r"'([^']+)'", message)
+    if quoted is None:
+        return None
+    bad = quoted.group(1)
+    for element in root.iter():
+        for name, value in element.attrib.items():
+            if bad in str(value).split() and element.sourceline:
+                line = element.sourceline
+                try:
+                    text = path.read_text(errors="replace").splitlines()[line - 1]
+                except (OSError, IndexError):
+                    return SourceSpan(str(path), line, 1)
+                at = re.search(rf"{re.escape(name)}\s*=\s*[\"'][^\"']*?(?<![^\s\"']){re.escape(bad)}", text)
+                column = at.end() - len(bad) + 1 if at else 1
+                return SourceSpan(str(path), line, column, line, column + len(bad))
+    return None
+
+
 def read_robot(path: str | os.PathLike[str]) -> _Robot:
     """Parse a URDF (strict XML first, for line numbers), then with yourdfpy; check the tree."""
     from lxml import etree  # heavy: loaded with the first URDF, so that `mbcal check` of .mdl files stays fast
@@ -141,6 +163,9 @@ def read_robot(path: str | os.PathLike[str]) -> _Robot:
         )
     except Exception as err:  # yourdfpy raises KeyError, ValueError, AttributeError, ... on bad input
         detail = f"'{err.args[0]}' is missing" if isinstance(err, KeyError) else str(err)
+        where = _value_in_attributes(path, root, detail) if isinstance(err, ValueError) else None
+        if where is not None:
+            raise UrdfError(f"not a valid URDF ({detail})", where) from None
         raise UrdfError(f"{path}: not a valid URDF ({type(err).__name__}: {detail})") from None
 
     robot = _Robot(path, urdf, tree, lines)
