@@ -598,10 +598,11 @@ def cmd_studio(args: argparse.Namespace) -> int:
         cam, path = item.split("=", 1)
         cam, _, config = cam.partition("@")
         photos.append((cam, config or "default", path))
-    if args.host != "127.0.0.1":
+    if args.host not in ("127.0.0.1", "localhost", "::1"):
         print(
             f"mbcal studio: warning: listening on {args.host}, not only this machine; anyone who can reach it "
-            "and has the URL's token can edit the session and write under --out",
+            "and has the URL's token can edit the session and write under --out, and the page and its "
+            "token travel unencrypted (plain HTTP)",
             file=sys.stderr,
         )
     for path in [args.model, *args.measurements]:
@@ -624,6 +625,17 @@ def _seed(text: str) -> int:
         raise argparse.ArgumentTypeError(f"expected a whole number ≥ 0, got {text!r}") from None
     if value < 0:
         raise argparse.ArgumentTypeError(f"expected a whole number ≥ 0, got {value}")
+    return value
+
+
+def _port(text: str) -> int:
+    """--port: 0 (any free port) to 65535."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a port number, got {text!r}") from None
+    if not 0 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"expected a port from 0 (any free one) to 65535, got {value}")
     return value
 
 
@@ -1004,7 +1016,7 @@ def _register_commands(sub) -> None:
     p.add_argument("--out", default="mbcal-studio", metavar="DIR", help="the folder to write in (default mbcal-studio)")
     p.add_argument("--no-browser", action="store_true", help="print the URL instead of opening a browser")
     p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1; others warn)")
-    p.add_argument("--port", type=int, default=0, metavar="N", help="port (default: a free one)")
+    p.add_argument("--port", type=_port, default=0, metavar="N", help="port (default: a free one)")
 
     p = _add(
         sub,

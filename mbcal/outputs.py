@@ -115,7 +115,9 @@ def atomic_writer(path: str | os.PathLike[str], mode: str = "wb") -> Iterator:
     gets the target's permissions (see the module doc) and is renamed over the target.
     """
     target = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part", dir=target.resolve().parent)
+    # Beside the name given, not beside what a link there points to: the rename below replaces
+    # that name (a link included), and a rename across file systems fails.
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part", dir=target.parent)
     try:
         encoding, newline = (None, None) if "b" in mode else ("utf-8", "")
         with os.fdopen(fd, mode, encoding=encoding, newline=newline) as handle:

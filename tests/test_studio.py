@@ -15,8 +15,9 @@ import pytest
 
 # The studio's server needs the studio extra (FastAPI, uvicorn), which the test extra includes:
 # without it these tests fail at import instead of being skipped.
+from mbcal.errors import MbcalError
 from mbcal.studio.engine import Engine
-from mbcal.studio.server import MAX_BODY, StudioServer
+from mbcal.studio.server import MAX_BODY, TOKEN_HEADER, StudioServer
 from mbcal.studio.session import SESSION_FILE
 
 SMALL = """\
@@ -78,8 +79,8 @@ def _base(srv: StudioServer) -> str:
 
 
 def _client(srv: StudioServer) -> httpx.Client:
-    """A client that opened the page's URL (it holds the cookie)."""
-    c = httpx.Client(timeout=30)
+    """A client that opened the page's URL and sends the token as the page does (a header)."""
+    c = httpx.Client(timeout=30, headers={TOKEN_HEADER: srv.token})
     assert c.get(srv.url).status_code == 200
     return c
 
@@ -87,16 +88,20 @@ def _client(srv: StudioServer) -> httpx.Client:
 POST = {"Content-Type": "application/json"}
 
 
-def test_the_token_is_required_and_becomes_an_httponly_strict_cookie(server):
+def test_the_token_is_required_in_the_url_or_the_header_and_never_set_as_a_cookie(server):
     base = _base(server)
     assert httpx.get(base + "/").status_code == 403
     assert httpx.get(base + "/api/state").status_code == 403
     assert httpx.get(base + "/?token=wrong").status_code == 403
-    assert httpx.get(base + "/api/state", cookies={"mbcal_studio": "wrong"}).status_code == 403
+    assert httpx.get(base + "/api/state", headers={TOKEN_HEADER: "wrong"}).status_code == 403
     r = httpx.get(server.url)
     assert r.status_code == 200 and "<title>mbcal studio</title>" in r.text
-    cookie = r.headers["set-cookie"].lower()
-    assert "httponly" in cookie and "samesite=strict" in cookie
+    # No cookie: a browser would send a 127.0.0.1 cookie to every other local port.
+    assert "set-cookie" not in r.headers
+    assert f'<meta name="studio-token" content="{server.token}">' in r.text
+    assert f'src="/static/studio.js?token={server.token}"' in r.text
+    assert httpx.get(base + f"/static/studio.js?token={server.token}").status_code == 200
+    assert httpx.get(base + "/static/studio.js").status_code == 403
     c = _client(server)
     assert c.get(base + "/api/state").json()["model"] == "small.mdl"
     assert "frame-ancestors 'none'" in c.get(base + "/").headers["content-security-policy"]
@@ -218,6 +223,7 @@ def open_page(browser, url: str, width: int = 1600, height: int = 1000):
     page = browser.new_page(viewport={"width": width, "height": height})
     page.goto(url)
     page.wait_for_selector("body[data-ready='1']", timeout=60_000)
+    assert "token=" not in page.url  # dropped from the address and the history; the page keeps it
     return page
 
 
@@ -466,3 +472,118 @@ def test_hidden_edges_are_left_out_of_the_wireframe(small):
     assert np.min(np.linalg.norm(seen - back_corner, axis=1)) > 2.0
     points = {p["name"]: p for p in engine.projection("p0")["points"]}
     assert not any(p["hidden"] for p in points.values())  # the named points are on the front face
+
+
+# ---- from a security review: no cookie, no token in argv or history, writes only under --out
+
+
+def test_two_studios_keep_their_tokens_and_odd_tokens_are_refused_not_crashed(small, tmp_path):
+    model, photo, out = small
+    a = StudioServer(Engine(model, [], [("cam", "default", photo)], out)).start()
+    b = StudioServer(Engine(model, [], [("cam", "default", photo)], tmp_path / "out2")).start()
+    try:
+        assert _client(a).get(_base(a) + "/api/state").status_code == 200
+        assert _client(b).get(_base(b) + "/api/state").status_code == 200
+        assert httpx.get(_base(a) + "/api/state", headers={TOKEN_HEADER: b.token}).status_code == 403
+        for odd in ("%C3%A9", "%00", "x" * 5000):
+            assert httpx.get(_base(a) + f"/api/state?token={odd}").status_code == 403
+        assert httpx.get(_base(a) + "/api/state", headers={TOKEN_HEADER: "é".encode()}).status_code == 403
+    finally:
+        a.stop()
+        b.stop()
+
+
+def test_the_browser_is_opened_on_a_private_redirect_file_not_on_the_token(small, monkeypatch):
+    import webbrowser
+
+    from mbcal.studio import server as studio_server
+
+    opened = []
+    monkeypatch.setattr(webbrowser, "open", opened.append)
+    _model, _photo_path, out = small
+    out.mkdir()
+    url = "http://127.0.0.1:5/?token=SECRET"
+    path = studio_server._open_browser(url, out)
+    assert opened == [path.as_uri()] and "SECRET" not in opened[0]  # argv names a file
+    assert path.stat().st_mode & 0o777 == 0o600
+    assert 'content="0; url=http://127.0.0.1:5/?token=SECRET"' in path.read_text()
+
+
+def test_wildcard_hosts_and_ports_out_of_range_are_refused_before_anything_is_written(small, tmp_path):
+    model, photo, out = small
+    engine = Engine(model, [], [("cam", "default", photo)], out)
+    for host in ("0.0.0.0", "::"):
+        with pytest.raises(MbcalError, match="every address"):
+            StudioServer(engine, host=host)
+    with pytest.raises(MbcalError, match="65535"):
+        StudioServer(engine, port=70000)
+    r = subprocess.run(
+        [sys.executable, "-m", "mbcal", "studio", str(model), "--out", str(tmp_path / "o"), "--port", "70000"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 2 and "--port: expected a port from 0" in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "o").exists()
+
+
+def test_save_writes_only_under_out_and_never_over_a_photo(small, tmp_path):
+    model, photo, out = small
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    engine = Engine(model, [], [("cam", "default", photo)], out)
+    click = {"id": "c1", "camera": "cam", "config": "default", "point": "block.a", "u": 10.0, "v": 20.0, "sigma": 1.0}
+    engine.set_session([click], ["block.*"], {}, [])
+    (out / "measurements.csv").symlink_to(elsewhere / "victim.csv")
+    with pytest.raises(MbcalError, match="writes only under --out"):
+        engine.save("csv")
+    assert list(elsewhere.iterdir()) == []
+    (out / "measurements.csv").unlink()
+    (out / "overlays").symlink_to(elsewhere, target_is_directory=True)
+    with pytest.raises(MbcalError, match="writes only under --out"):
+        engine._target_path("overlays")
+    # A photo where Save draws its overlays is refused when the studio starts.
+    (out / "overlays").unlink()
+    (out / "overlays").mkdir()
+    inside = _photo(out / "overlays" / "cam_after.png")
+    with pytest.raises(MbcalError, match="which Save writes into"):
+        Engine(model, [], [("cam", "default", inside)], tmp_path / "out3" / ".." / "out")
+
+
+def test_another_models_session_in_out_is_kept_not_replaced(small, tmp_path):
+    model, photo, out = small
+    engine = Engine(model, [], [("cam", "default", photo)], out)
+    engine.set_session([{"id": "c1", "camera": "cam", "config": "default", "point": "block.a", "u": 10.0,
+                         "v": 20.0, "sigma": 1.0}], ["block.*"], {}, [])  # fmt: skip
+    before = (out / SESSION_FILE).read_text()
+    other = tmp_path / "other.mdl"
+    other.write_text(SMALL.replace("point a", "point e"), encoding="utf-8")
+    with pytest.raises(MbcalError, match="holds a session of"):
+        Engine(other, [], [("cam", "default", photo)], out)
+    assert (out / SESSION_FILE).read_text() == before
+    assert json.loads(before)["model"] == str(model.resolve())
+
+
+def test_an_edit_after_a_solve_keeps_its_result_out_of_the_save(small):
+    import time
+
+    model, photo, out = small
+    engine = Engine(model, [], [("cam", "default", photo)], out)
+    clicks = [
+        {"id": f"c{i}", "camera": "cam", "config": "default", "point": f"block.{name}", "u": u, "v": v, "sigma": 1.0}
+        for i, (name, u, v) in enumerate(
+            [("a", 130.0, 97.0), ("b", 190.0, 97.0), ("c", 190.0, 142.0), ("d", 130.0, 142.0)]
+        )
+    ]
+    engine.set_session(clicks, ["block.x", "block.y"], {}, [])
+    engine.start_solve(restarts=2)
+    end = time.monotonic() + 120
+    while not engine.solve_status()["done"] and time.monotonic() < end:
+        time.sleep(0.05)
+    assert engine.result is not None, engine.solve_status()
+    engine.set_session(clicks, ["block.x", "block.y"], {}, [])  # the same clicks: the result stands
+    assert engine.result is not None
+    moved = [dict(c, u=c["u"] + 50.0) if c["id"] == "c0" else c for c in clicks]
+    engine.set_session(moved, ["block.x", "block.y"], {}, [])
+    assert engine.result is None  # solved from other clicks: not saved beside these
+    assert engine.save("csv")["written"] == ["measurements.csv"] and not (out / "report.json").exists()

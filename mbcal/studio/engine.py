@@ -185,13 +185,25 @@ class Engine:
         self.result: Any = None
         self.solve_state: dict[str, Any] = {"running": False, "messages": [], "error": None, "done": False}
         self._next_id = 1
+        model_name = str(self.model_path.resolve())
+        for photo in self.photos.values():  # Save draws into out/overlays: never over a photo
+            if _inside(photo.path, self.out / "overlays"):
+                raise MbcalError(f"photo {photo.path} is inside {self.out / 'overlays'}, which Save writes into")
         restored = load_session(self.session_path)
+        if restored is not None and restored.model and restored.model != model_name:
+            # Another model's clicks: dropping them here would lose that session (its file is
+            # rewritten at once below).
+            raise MbcalError(
+                f"{self.session_path} holds a session of {restored.model}",
+                hint=f"give another --out for {self.model_path.name}, or move that session away",
+            )
         self.load()
         if restored is not None:
             self.session = restored
             self._keep_valid_clicks("restored from " + str(self.session_path))
         elif self.loaded is not None and self.loaded.inputs is not None:
             self._clicks_from_inputs()
+        self.session.model = model_name
         self._next_id = self._max_id() + 1
         self.save_session()
 
@@ -630,7 +642,9 @@ class Engine:
             for name in values:
                 if not model.has("param", name.split("@")[0]):
                     raise MbcalError(f"the model has no parameter '{name.split('@')[0]}'")
-            self.session = Session(new, list(estimate), dict(values), list(hidden))
+            if self.result is not None and (new != self.session.clicks or list(estimate) != self.session.estimate):
+                self.result = None  # the solve was of other clicks: Save must not write it beside these
+            self.session = Session(new, list(estimate), dict(values), list(hidden), self.session.model)
             self._next_id = max(self._next_id, self._max_id() + 1)
             self.save_session()
             return {"saved": len(new), "next_id": self._next_id}
@@ -799,18 +813,29 @@ class Engine:
             result = self.result
             inputs = self.inputs
         written = []
-        meas = check_output(self.out / f"measurements.{fmt}", inputs)
+        meas = self._target(f"measurements.{fmt}", inputs)
         write_measurements(data, meas)
         written.append(meas.name)
         if result is not None:
             suffix = ".urdf" if self.model_path.suffix.lower() == ".urdf" else ".mdl"
-            model_out = check_output(self.out / f"{self.model_path.stem}_calibrated{suffix}", inputs)
+            model_out = self._target(f"{self.model_path.stem}_calibrated{suffix}", inputs)
             result.write_model(model_out)
-            report = check_output(self.out / "report.json", inputs)
+            report = self._target("report.json", inputs)
             atomic_write(report, json.dumps(result.to_json(), indent=1, allow_nan=False) + "\n")
             written += [model_out.name, report.name]
             written += self._overlays(loaded.model, result)
         return {"written": written, "out": str(self.out)}
+
+    def _target(self, name: str, inputs: Sequence[Path]) -> Path:
+        """An output of Save: under ``--out`` itself, not through a link to elsewhere, not an input."""
+        path = self._target_path(name)
+        return check_output(path, inputs)
+
+    def _target_path(self, name: str) -> Path:
+        path = self.out / name
+        if path.is_symlink() or not _inside(path, self.out):
+            raise MbcalError(f"{path} leads outside {self.out} (a link): the studio writes only under --out")
+        return path
 
     def _overlays(self, model: Model, result) -> list[str]:
         from mbcal.render.overlays import calibration_overlays  # rendering: loaded when pictures are made
@@ -819,13 +844,19 @@ class Engine:
         backgrounds = {}
         for photo in self.photos.values():
             backgrounds[model.resolve("camera", photo.camera)] = load_image(photo.path)
+        folder = self._target_path("overlays")
         try:
             with _RENDER_LOCK:
-                paths = calibration_overlays(result, self.out / "overlays", backgrounds=backgrounds)
+                paths = calibration_overlays(result, folder, backgrounds=backgrounds)
         except MbcalError as err:
             self.notes.append(f"overlays not drawn: {err}")
             return []
         return [f"overlays/{p.name}" for p in paths]
+
+
+def _inside(path: Path, folder: Path) -> bool:
+    """Whether ``path`` (links followed) lies in ``folder`` (links followed)."""
+    return path.resolve().is_relative_to(folder.resolve())
 
 
 def _num(v: float) -> float | None:

@@ -3,8 +3,12 @@
 Security (docs/studio.md):
 
 - it listens on 127.0.0.1 unless ``--host`` names another address (the command warns);
-- every request needs the token: in the URL's query the first time, then in a cookie
-  (HttpOnly, SameSite=Strict); without it the answer is 403;
+- every request needs the token: in the URL's query (the page's address, and the URLs of its
+  own files and photos, which the server writes into the page), or in the ``X-Studio-Token``
+  header (the page's API calls); without it the answer is 403.  No cookie: a browser sends a
+  127.0.0.1 cookie to every port, so any local service the browser visits would see it.  The
+  page drops the token from its address (history), and a browser is opened on a private
+  redirect file, not on the URL (a command line is readable by every local user);
 - the ``Host`` header must be the address the server listens on (no DNS rebinding), and a
   state-changing request (POST) must come from the page's own ``Origin`` with a JSON body of at
   most :data:`MAX_BODY` bytes, validated against a schema (pydantic) — else a 4xx;
@@ -15,6 +19,7 @@ Security (docs/studio.md):
 
 from __future__ import annotations
 
+import contextlib
 import hmac
 import json
 import secrets
@@ -23,6 +28,7 @@ import threading
 import urllib.parse
 from concurrent.futures import ThreadPoolExecutor
 from importlib import resources
+from pathlib import Path
 from typing import Annotated, Literal
 
 import uvicorn
@@ -34,11 +40,15 @@ from pydantic import BaseModel, ConfigDict, Field, StringConstraints
 from mbcal.errors import MbcalError
 from mbcal.studio.engine import MAX_CLICKS, MAX_RESTARTS_STUDIO, Engine, error_json
 
-__all__ = ["create_app", "StudioServer", "MAX_BODY", "COOKIE"]
+__all__ = ["create_app", "StudioServer", "MAX_BODY", "TOKEN_HEADER"]
+
+WILDCARDS = ("0.0.0.0", "::", "[::]", "")
+"""Addresses that listen everywhere: refused (see :class:`StudioServer`)."""
 
 MAX_BODY = 2 * 1024 * 1024
 _POOL = ThreadPoolExecutor(max_workers=4, thread_name_prefix="mbcal-studio-camera")
-COOKIE = "mbcal_studio"
+TOKEN_HEADER = "X-Studio-Token"
+"""The header that carries the token in the page's API calls."""
 STATIC = {"studio.js": "text/javascript", "studio.css": "text/css"}
 SECURITY_HEADERS = {
     "X-Content-Type-Options": "nosniff",
@@ -114,10 +124,25 @@ def _refuse(status: int, message: str) -> JSONResponse:
     return JSONResponse({"error": {"message": message, "location": None}}, status_code=status, headers=SECURITY_HEADERS)
 
 
+def _same(given: str, token: str) -> bool:
+    """Constant-time comparison of text from a request (any characters) with the token."""
+    return hmac.compare_digest(given.encode("utf-8", "surrogateescape"), token.encode())
+
+
 def create_app(engine: Engine, token: str, hosts: list[str]) -> FastAPI:
     """The studio's application for ``engine``; ``hosts`` are the ``host:port`` it answers to."""
     app = FastAPI(title="mbcal studio", docs_url=None, redoc_url=None, openapi_url=None)
     origins = {f"http://{h}" for h in hosts}
+    # The page with the token written in: its own files' URLs carry it, and a meta tag gives it
+    # to the script for the API's header.
+    page = (
+        _static("index.html")
+        .decode("utf-8")
+        .replace("<head>", f'<head>\n<meta name="studio-token" content="{token}">', 1)
+        .replace('href="/static/studio.css"', f'href="/static/studio.css?token={token}"')
+        .replace('src="/static/studio.js"', f'src="/static/studio.js?token={token}"')
+        .encode("utf-8")
+    )
 
     @app.middleware("http")
     async def guard(request: Request, call_next):
@@ -127,10 +152,8 @@ def create_app(engine: Engine, token: str, hosts: list[str]) -> FastAPI:
             return _refuse(400, "paths with '..', '//', '\\' or encoded slashes are refused")
         if request.headers.get("host", "") not in hosts:
             return _refuse(403, "wrong Host header")
-        given = request.query_params.get("token")
-        cookie = request.cookies.get(COOKIE)
-        from_url = given is not None and hmac.compare_digest(given, token)
-        if not from_url and not (cookie is not None and hmac.compare_digest(cookie, token)):
+        given = request.query_params.get("token") or request.headers.get(TOKEN_HEADER)
+        if given is None or not _same(given, token):
             return _refuse(403, "the studio's token is missing or wrong: open the URL the command printed")
         if request.method not in ("GET", "HEAD"):
             if request.headers.get("origin") not in origins:
@@ -145,8 +168,6 @@ def create_app(engine: Engine, token: str, hosts: list[str]) -> FastAPI:
         response = await call_next(request)
         for k, v in SECURITY_HEADERS.items():
             response.headers.setdefault(k, v)
-        if from_url:
-            response.set_cookie(COOKIE, token, httponly=True, samesite="strict", path="/")
         return response
 
     @app.exception_handler(MbcalError)
@@ -165,7 +186,7 @@ def create_app(engine: Engine, token: str, hosts: list[str]) -> FastAPI:
 
     @app.get("/")
     def index():
-        return Response(_static("index.html"), media_type="text/html; charset=utf-8")
+        return Response(page, media_type="text/html; charset=utf-8")
 
     @app.get("/static/{name}")
     def static(name: str):
@@ -229,6 +250,14 @@ class StudioServer:
     """The studio served on a socket: ``run()`` blocks; ``start()`` runs it in a thread (tests)."""
 
     def __init__(self, engine: Engine, host: str = "127.0.0.1", port: int = 0):
+        if not 0 <= port <= 65535:
+            raise MbcalError(f"--port must be 0 (any free port) to 65535, got {port}")
+        if host in WILDCARDS:
+            raise MbcalError(
+                f"--host {host} listens on every address but answers to one Host name, so a browser "
+                "elsewhere could not use it: name the address to listen on (this machine's, as the "
+                "other machine reaches it)"
+            )
         family = socket.AF_INET6 if ":" in host else socket.AF_INET
         self.sock = socket.socket(family, socket.SOCK_STREAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -278,9 +307,38 @@ def serve_forever(engine: Engine, host: str, port: int, *, open_browser: bool, s
     server = StudioServer(engine, host, port)
     say(f"mbcal studio: {server.url}")
     say(f"  writing under {engine.out}/ (session saved after every edit); Ctrl+C stops")
-    if open_browser:
-        import webbrowser  # only when a browser is to be opened
-
-        webbrowser.open(server.url)
-    server.run()
+    opener = _open_browser(server.url, engine.out) if open_browser else None
+    try:
+        server.run()
+    finally:
+        if opener is not None:
+            with contextlib.suppress(OSError):
+                opener.unlink()
     return 0
+
+
+def _open_browser(url: str, out) -> Path:
+    """Open ``url`` in the user's browser through a private redirect file (mode 0600, in the
+    studio's folder): the browser's command line then names the file, not the token."""
+    import os
+    import tempfile
+    import webbrowser  # only when a browser is to be opened
+    from html import escape
+
+    fd, name = tempfile.mkstemp(prefix=".studio-open-", suffix=".html", dir=out)
+    with os.fdopen(fd, "w", encoding="utf-8") as f:  # mkstemp makes it 0600
+        f.write(
+            f'<!doctype html><meta charset="utf-8"><meta http-equiv="refresh" content="0; url={escape(url)}">'
+            f'<a href="{escape(url)}">open the studio</a>\n'
+        )
+    path = Path(name).resolve()
+    webbrowser.open(path.as_uri())
+
+    def remove() -> None:  # once the browser has read it (and at the latest when the studio stops)
+        with contextlib.suppress(OSError):
+            path.unlink()
+
+    timer = threading.Timer(30.0, remove)
+    timer.daemon = True
+    timer.start()
+    return path

@@ -44,10 +44,12 @@ class Session:
     estimate: list[str] = field(default_factory=list)
     values: dict[str, float] = field(default_factory=dict)  # SI, by parameter name (coarse alignment)
     hidden: list[str] = field(default_factory=list)  # objects switched off in the overlay
+    model: str = ""  # the model file the clicks were made on (absolute path; "" in older sessions)
 
     def to_json(self) -> dict[str, Any]:
         return {
             "format": SESSION_FORMAT,
+            "model": self.model,
             "clicks": [asdict(c) for c in self.clicks],
             "estimate": list(self.estimate),
             "values": dict(self.values),
@@ -99,6 +101,7 @@ def load_session(path: Path) -> Session | None:
         estimate=[str(e) for e in doc.get("estimate", [])],
         values=values,
         hidden=[str(h) for h in doc.get("hidden", [])],
+        model=str(doc.get("model", "")),
     )
 
 

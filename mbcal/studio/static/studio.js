@@ -22,8 +22,12 @@ function el(tag, attrs = {}, parent = null, ns = null) {
 }
 const sv = (tag, attrs, parent) => el(tag, attrs, parent, SVGNS);
 
+// The token: the server writes it into the page (no cookie, which every local port would see).
+const TOKEN = (document.querySelector('meta[name="studio-token"]') || {}).content || "";
+const withToken = (path) => `${path}${path.includes("?") ? "&" : "?"}token=${encodeURIComponent(TOKEN)}`;
+
 async function api(method, path, body) {
-  const opts = { method, credentials: "same-origin", headers: {} };
+  const opts = { method, credentials: "omit", headers: { "X-Studio-Token": TOKEN } };
   if (body !== undefined) {
     opts.headers["Content-Type"] = "application/json";
     opts.body = JSON.stringify(body);
@@ -234,7 +238,7 @@ function buildViews() {
     const div = el("div", { class: "view", "data-photo": ph.id }, box);
     el("h3", { text: `${shortCamera(ph.camera)} · ${ph.config}` }, div);
     const svg = sv("svg", { viewBox: `-0.5 -0.5 ${ph.width} ${ph.height}`, "data-photo": ph.id }, div);
-    const img = sv("image", { href: `/api/photo/${ph.id}`, x: -0.5, y: -0.5, width: ph.width, height: ph.height,
+    const img = sv("image", { href: withToken(`/api/photo/${ph.id}`), x: -0.5, y: -0.5, width: ph.width, height: ph.height,
       preserveAspectRatio: "none" }, svg);
     const solid = sv("image", { class: "solid", x: -0.5, y: -0.5, width: ph.width, height: ph.height,
       preserveAspectRatio: "none" }, svg);
@@ -292,7 +296,7 @@ function refreshAll(t0, solid = true) {
 function requestSolid(id) {
   if (Number($("#solid-opacity").value) <= 0) return;
   const body = JSON.stringify({ photo: id, values: activeValues() });  // one camera per rendering
-  fetch("/api/solid", { method: "POST", credentials: "same-origin", headers: { "Content-Type": "application/json" }, body })
+  fetch("/api/solid", { method: "POST", credentials: "omit", headers: { "Content-Type": "application/json", "X-Studio-Token": TOKEN }, body })
     .then((r) => (r.ok ? r.blob() : null))
     .then((blob) => {
       const v = S.views[id];
@@ -479,7 +483,7 @@ function showLoupe(v, e, u, w) {
   const half = 12; // a 24 px window shown 160 px wide: about 6.7 times magnified
   svg.setAttribute("viewBox", `${u - half} ${w - half} ${2 * half} ${2 * half}`);
   const img = svg.querySelector("image");
-  img.setAttribute("href", `/api/photo/${v.photo.id}`);
+  img.setAttribute("href", withToken(`/api/photo/${v.photo.id}`));
   img.setAttribute("x", -0.5); img.setAttribute("y", -0.5);
   img.setAttribute("width", v.photo.width); img.setAttribute("height", v.photo.height);
   svg.querySelector("path").setAttribute("d", `M${u},${w - half} V${w + half} M${u - half},${w} H${u + half}`);
@@ -676,6 +680,9 @@ document.addEventListener("keydown", (e) => {
 });
 
 window.addEventListener("DOMContentLoaded", () => {
+  // The token came in the address; the page has it (TOKEN), so it is dropped from the address
+  // bar and the history.
+  if (new URLSearchParams(location.search).has("token")) history.replaceState(null, "", location.pathname);
   $("#search").addEventListener("input", buildPointList);
   $("#search").addEventListener("keydown", (e) => {
     if (e.key === "Enter") {
