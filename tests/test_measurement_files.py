@@ -542,3 +542,23 @@ def test_a_csv_error_about_one_cell_points_at_that_cell(tmp_path, row, column, m
         read_measurements(path, load_model(MODELS / "lever.mdl"))
     assert message in info.value.message
     assert (info.value.span.line, info.value.span.column) == (2, column)
+
+
+def test_an_id_that_starts_like_a_comment_survives_a_csv_round_trip(tmp_path):
+    """'#' starts a comment line in a CSV file: an id that starts with it is written quoted, and a
+    quoted first cell is a value (the studio's click ids are the user's)."""
+    from mbcal.measurements.sets import measurements_from_records
+
+    model = load_model(MODELS / "lever.mdl")
+    records = [
+        {"id": "#1", "kind": "image_point", "camera": "eye", "point": "lever.hub", "u": 1.0, "v": 2.0},
+        {"id": 'a"b', "kind": "image_point", "camera": "eye", "point": "lever.tip", "u": 3.0, "v": 4.0},
+    ]
+    path = tmp_path / "ids.csv"
+    write_measurements(measurements_from_records(records, model), path)
+    back = read_measurements(path, model)
+    assert [m.id for m in back] == ["#1", 'a"b']
+    np.testing.assert_array_equal(back.measurements[0].value, [1.0, 2.0])
+    # an unquoted '#' line is still a comment
+    path.write_text(path.read_text() + "# a note,image_point,default,eye,lever.hub,5,6,1\n")
+    assert len(read_measurements(path, model)) == 2

@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from mbcal.errors import MeasurementFileError, SourceSpan, suggest
+from mbcal.errors import MbcalError, MeasurementFileError, SourceSpan, suggest
 from mbcal.measurements.registry import get_model, registry
 from mbcal.measurements.sets import (
     DEFAULT_CONFIG,
@@ -151,8 +151,10 @@ def _read_csv(handle, path: str, builder: SetBuilder) -> None:
     allowed = _csv_columns()
     for row in reader:
         line_no = reader.line_num
-        if not row or all(not c.strip() for c in row) or row[0].lstrip().startswith("#"):
+        if not row or all(not c.strip() for c in row):
             continue
+        if row[0].lstrip().startswith("#") and not lines.last.lstrip().startswith('"'):
+            continue  # a comment line (a quoted first cell that starts with '#' is a value: an id)
         if header is None:
             header = [c.strip().lower() for c in row]
             cols = _field_columns(lines.last.rstrip("\r\n"), len(header))
@@ -452,5 +454,17 @@ def write_measurements(ms: MeasurementSet, path: str | os.PathLike[str]) -> None
             elif isinstance(v, float):
                 v = repr(v)
             cells.append(v)
+        first = str(cells[0])
+        if first != first.strip():  # the reader strips cells: the id would come back another
+            raise MbcalError(
+                f"measurement id {first!r} begins or ends with a space, which a CSV file does not keep",
+                hint="write a .json file, or rename the measurement",
+            )
+        if first.startswith("#"):  # quoted, or the reader would take the row for a comment
+            out.write('"' + first.replace('"', '""') + '"')
+            rest = io.StringIO()
+            csv.writer(rest, lineterminator="\n").writerow(cells[1:])
+            out.write("," + rest.getvalue() if len(cells) > 1 else "\n")
+            continue
         writer.writerow(cells)
     atomic_write(p, out.getvalue())
