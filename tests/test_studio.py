@@ -587,3 +587,63 @@ def test_an_edit_after_a_solve_keeps_its_result_out_of_the_save(small):
     engine.set_session(moved, ["block.x", "block.y"], {}, [])
     assert engine.result is None  # solved from other clicks: not saved beside these
     assert engine.save("csv")["written"] == ["measurements.csv"] and not (out / "report.json").exists()
+
+
+def test_imported_ids_stay_unique_and_configuration_names_are_checked(small, tmp_path):
+    model, photo, out = small
+    clicks = tmp_path / "clicks.json"
+    clicks.write_text(
+        json.dumps(
+            {
+                "measurements": [
+                    {"id": "a/1", "kind": "image_point", "camera": "cam", "point": "block.a", "u": 10, "v": 20},
+                    {"id": "a_1", "kind": "image_point", "camera": "cam", "point": "block.b", "u": 30, "v": 40},
+                ]
+            }
+        )
+    )
+    engine = Engine(model, [clicks], [("cam", "default", photo)], out)
+    ids = [c.id for c in engine.session.clicks]
+    assert sorted(ids) == ["a_1", "a_1_2"]
+    assert engine.save("csv")["written"] == ["measurements.csv"]  # no duplicate ids
+    with pytest.raises(MbcalError, match="configuration name 'pose/1'"):
+        Engine(model, [], [("cam", "pose/1", photo)], tmp_path / "out2")
+
+
+def test_a_session_that_cannot_be_written_changes_nothing_and_says_so(small, monkeypatch):
+    import mbcal.studio.engine as studio_engine
+
+    model, photo, out = small
+    engine = Engine(model, [], [("cam", "default", photo)], out)
+    click = {"id": "c1", "camera": "cam", "config": "default", "point": "block.a", "u": 10.0, "v": 20.0, "sigma": 1.0}
+
+    def full(*_args):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(studio_engine, "save_session", full)
+    with pytest.raises(MbcalError, match="cannot save the session to .*No space left on device"):
+        engine.set_session([click], ["block.*"], {}, [])
+    assert engine.session.clicks == []  # as before the refused edit: the page still has it to send again
+
+
+@pytest.mark.slow
+def test_the_page_says_not_saved_until_a_session_save_succeeds(browser, small):
+    import shutil
+
+    model, photo, out = small
+    srv = StudioServer(Engine(model, [], [("cam", "default", photo)], out)).start()
+    try:
+        page = open_page(browser, srv.url)
+        page.wait_for_selector("svg[data-photo='p0'] .wire path")
+        shutil.rmtree(out)  # the folder is gone: the session cannot be written
+        click_point(page, "p0", "block.a", 110.25, 80.5)
+        page.wait_for_selector("body[data-unsaved='1']")
+        assert page.inner_text("#status").startswith("NOT SAVED")
+        out.mkdir()
+        click_point(page, "p0", "block.b", 210.0, 81.0)
+        page.wait_for_function("() => document.body.dataset.unsaved === ''")
+        assert not page.inner_text("#status").startswith("NOT SAVED")
+        assert len(_session_when(out, lambda s: len(s["clicks"]) == 2)["clicks"]) == 2  # both on disk now
+        page.close()
+    finally:
+        srv.stop()

@@ -164,6 +164,8 @@ class Engine:
         self.out.mkdir(parents=True, exist_ok=True)
         self.photos: dict[str, Photo] = {}
         for i, (camera, config, path) in enumerate(photos):
+            if not config or re.search(r"[\x00-\x1f/\\]", config):
+                raise MbcalError(f"configuration name {config!r}: a name without '/', '\\' or control characters")
             p = Path(path)
             if not p.is_file():
                 raise MbcalError(f"photo not found: {p}")
@@ -217,8 +219,11 @@ class Engine:
     def inputs(self) -> list[Path]:
         return [self.model_path, *self.measurement_paths, *(p.path for p in self.photos.values())]
 
-    def save_session(self) -> None:
-        save_session(self.session, self.session_path)
+    def save_session(self, session: Session | None = None) -> None:
+        try:
+            save_session(self.session if session is None else session, self.session_path)
+        except OSError as err:
+            raise MbcalError(f"cannot save the session to {self.session_path}: {err.strerror or err}") from None
 
     # ---- the model -----------------------------------------------------------------------------------
 
@@ -276,11 +281,18 @@ class Engine:
 
     def _clicks_from_inputs(self) -> None:
         assert self.loaded is not None and self.loaded.inputs is not None
+        taken = {m.id for m in self.loaded.inputs}
         for m in self.loaded.inputs:
             if m.kind == "image_point" and m.value is not None:
+                cid = re.sub(r"[\x00-\x1f/\\]", "_", m.id)  # ids travel in the page's requests: no slashes
+                if cid != m.id:  # cleaned: made unique again ('a/1' and 'a_1' are both in the file)
+                    base, k = cid, 2
+                    while cid in taken:
+                        cid, k = f"{base}_{k}", k + 1
+                    taken.add(cid)
                 self.session.clicks.append(
                     Click(
-                        re.sub(r"[\x00-\x1f/\\]", "_", m.id),  # ids travel in the page's requests: no slashes
+                        cid,
                         m.refs["camera"],
                         m.config,
                         m.refs["point"],
@@ -642,11 +654,13 @@ class Engine:
             for name in values:
                 if not model.has("param", name.split("@")[0]):
                     raise MbcalError(f"the model has no parameter '{name.split('@')[0]}'")
-            if self.result is not None and (new != self.session.clicks or list(estimate) != self.session.estimate):
+            stale = new != self.session.clicks or list(estimate) != self.session.estimate
+            session = Session(new, list(estimate), dict(values), list(hidden), self.session.model)
+            self.save_session(session)  # written first: a refused write leaves the engine as it was
+            self.session = session
+            if stale:
                 self.result = None  # the solve was of other clicks: Save must not write it beside these
-            self.session = Session(new, list(estimate), dict(values), list(hidden), self.session.model)
             self._next_id = max(self._next_id, self._max_id() + 1)
-            self.save_session()
             return {"saved": len(new), "next_id": self._next_id}
 
     # ---- observe, solve, save ------------------------------------------------------------------------

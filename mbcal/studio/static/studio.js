@@ -42,7 +42,7 @@ async function api(method, path, body) {
   return data;
 }
 
-function status(text) { $("#status").textContent = text; }
+function status(text) { $("#status").textContent = (S.unsaved ? "NOT SAVED — " : "") + text; }
 
 // The model's error stays until the model loads; a refused request's error until the next success.
 function showError(err, transient = false) {
@@ -575,8 +575,15 @@ let saving = Promise.resolve();
 function saveSession() {
   const body = { clicks: S.clicks, estimate: S.estimate, values: S.values, hidden: S.hidden };
   saving = saving.then(() => api("POST", "/api/session", body)
-    .then((r) => { S.nextId = Math.max(S.nextId, r.next_id); S.saved = (S.saved || 0) + 1; status(`saved ${r.saved} click(s)`); })
-    .catch(() => {}));
+    .then((r) => {
+      S.nextId = Math.max(S.nextId, r.next_id); S.saved = (S.saved || 0) + 1; S.unsaved = false;
+      document.body.dataset.unsaved = ""; status(`saved ${r.saved} click(s)`);
+    })
+    .catch((e) => {
+      // Lasting until a save succeeds: a later success elsewhere must not hide that edits are not on disk.
+      S.unsaved = true; document.body.dataset.unsaved = "1";
+      status(`${e.message} (the next edit tries again)`);
+    }));
   return saving;
 }
 
