@@ -647,3 +647,25 @@ def test_the_page_says_not_saved_until_a_session_save_succeeds(browser, small):
         page.close()
     finally:
         srv.stop()
+
+
+def test_the_wireframe_edge_cache_is_bounded(small, monkeypatch):
+    import mbcal.studio.engine as studio_engine
+
+    model, photo, out = small
+    monkeypatch.setattr(studio_engine, "MAX_EDGE_SETS", 5)
+    engine = Engine(model, [], [("cam", "default", photo)], out)
+    loaded = engine.require_model()
+    for k in range(12):
+        edges = engine._edges(loaded, 0, np.array([0.4 + 0.01 * k, 0.3, 0.2]))
+        assert edges is not None
+    assert len(loaded.edges) == 5
+
+
+def test_bodies_the_framework_refuses_get_the_pages_error_format(server):
+    base = _base(server)
+    headers = {TOKEN_HEADER: server.token, "Origin": base, "Content-Type": "application/json"}
+    for body in (b"[" * 5000 + b"]" * 5000, b"\xff\xfe{"):
+        r = httpx.post(base + "/api/session", content=body, headers=headers)
+        assert r.status_code == 400 and r.json()["error"]["message"].startswith("invalid request")
+        assert r.headers["x-frame-options"] == "DENY"

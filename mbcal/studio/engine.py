@@ -122,6 +122,13 @@ def _object_of(shape_name: str) -> str:
     return shape_name.rsplit(".", 1)[0] if "." in shape_name else shape_name
 
 
+_MISSING = object()
+
+MAX_EDGE_SETS = 256
+"""Edge sets kept per loaded model (one per shape and size seen): a bound on the memory a long
+session of slider drags takes."""
+
+
 @dataclass
 class _Loaded:
     """A model that loaded, with its compiled modeler and measurement files."""
@@ -180,6 +187,7 @@ class Engine:
                 raise MbcalError(f"cannot read photo {p}: {err}") from None
             self.photos[f"p{i}"] = Photo(f"p{i}", camera, config, p, width, height)
         self.lock = threading.RLock()
+        self._edges_lock = threading.Lock()
         self.loaded: _Loaded | None = None
         self.error: dict[str, Any] | None = None
         self.notes: list[str] = []
@@ -398,10 +406,16 @@ class Engine:
 
     def _edges(self, loaded: _Loaded, i: int, dims: np.ndarray) -> _ShapeEdges | None:
         key = (i, np.round(dims, 9).tobytes())
-        if key not in loaded.edges:
-            shape = loaded.model.shapes[i]
-            loaded.edges[key] = _shape_edges(shape.kind, dims, shape.mesh)
-        return loaded.edges[key]
+        found = loaded.edges.get(key, _MISSING)
+        if found is not _MISSING:
+            return found  # type: ignore[return-value]
+        shape = loaded.model.shapes[i]
+        edges = _shape_edges(shape.kind, dims, shape.mesh)  # outside the lock: overlays run in parallel
+        with self._edges_lock:
+            while len(loaded.edges) >= MAX_EDGE_SETS:  # a slider dragged through many sizes: the oldest go
+                del loaded.edges[next(iter(loaded.edges))]
+            loaded.edges[key] = edges
+        return edges
 
     def projection(
         self, photo_id: str, values: Mapping[str, float] | None = None, *, occlusion: bool = True

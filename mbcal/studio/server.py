@@ -36,6 +36,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, Response
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from mbcal.errors import MbcalError
 from mbcal.studio.engine import MAX_CLICKS, MAX_RESTARTS_STUDIO, Engine, error_json
@@ -173,6 +174,16 @@ def create_app(engine: Engine, token: str, hosts: list[str]) -> FastAPI:
     @app.exception_handler(MbcalError)
     async def mbcal_error(_request: Request, err: MbcalError):
         return JSONResponse({"error": error_json(err)}, status_code=400)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(_request: Request, err: StarletteHTTPException):
+        # FastAPI's own refusals (a body that is not JSON, or nested too deep) in the page's format.
+        return _refuse(err.status_code, f"invalid request: {err.detail}")
+
+    @app.exception_handler(Exception)
+    async def crashed(_request: Request, err: Exception):
+        # Never a bare traceback page: the message, the page's format, the security headers.
+        return _refuse(500, f"the studio failed: {type(err).__name__}: {err}")
 
     @app.exception_handler(RequestValidationError)
     async def invalid(_request: Request, err: RequestValidationError):
