@@ -562,3 +562,14 @@ def test_an_id_that_starts_like_a_comment_survives_a_csv_round_trip(tmp_path):
     # an unquoted '#' line is still a comment
     path.write_text(path.read_text() + "# a note,image_point,default,eye,lever.hub,5,6,1\n")
     assert len(read_measurements(path, model)) == 2
+
+
+def test_records_from_python_refuse_unknown_keys_as_files_do():
+    from mbcal.measurements.sets import measurements_from_records
+
+    model = load_model(MODELS / "lever.mdl")
+    record = {"id": "a", "kind": "image_point", "camera": "eye", "point": "lever.hub", "u": 1.0, "v": 2.0}
+    assert len(measurements_from_records([record], model)) == 1
+    with pytest.raises(MeasurementFileError, match="record 1: unknown key 'sigam'") as info:
+        measurements_from_records([{**record, "sigam": 0.05}], model)
+    assert "sigma" in info.value.hint

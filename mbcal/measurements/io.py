@@ -42,16 +42,18 @@ from typing import Any
 import numpy as np
 
 from mbcal.errors import MbcalError, MeasurementFileError, SourceSpan, suggest
-from mbcal.measurements.registry import get_model, registry
+from mbcal.measurements.registry import get_model
 from mbcal.measurements.sets import (
     DEFAULT_CONFIG,
     MAX_MEASUREMENTS,
     Measurement,
     MeasurementSet,
     SetBuilder,
+    csv_columns,
     measurements_from_records,
     merge_measurements,
     parse_quantity,
+    record_keys,
 )
 from mbcal.outputs import atomic_write
 
@@ -75,22 +77,13 @@ MAX_FILE_BYTES = 512 * 1024 * 1024
 
 
 def _csv_columns() -> set[str]:
-    """The columns a CSV file may have (those of every registered measurement kind, plugins'
-    included); JSON measurement records take the same keys (:func:`_json_record_keys`)."""
-    cols = {"id", "kind", "config", "configuration", "unit", "sigma", "cov", "param", "value"}
-    for mm in registry().values():
-        cols.update(r.name for r in mm.roles)
-        cols.update(mm.values)
-        cols.update(mm.data)
-        cols.update(f"sigma_{v}" for v in mm.values)
-    return cols
+    """The columns a CSV file may have (:func:`mbcal.measurements.sets.csv_columns`)."""
+    return csv_columns()
 
 
 def _json_record_keys() -> set[str]:
-    """The keys a JSON measurement record may have: the CSV columns, less ``param`` (JSON files
-    give known values in ``known`` and ``configurations``, not as records), plus ``comment``
-    (JSON has no comment lines)."""
-    return (_csv_columns() - {"param"}) | {"comment"}
+    """The keys a JSON measurement record may have (:func:`mbcal.measurements.sets.record_keys`)."""
+    return record_keys()
 
 
 def _field_columns(line: str, n: int) -> list[int]:

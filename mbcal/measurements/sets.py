@@ -664,6 +664,25 @@ def merge_measurements(sets: Sequence[MeasurementSet]) -> MeasurementSet:
     return out
 
 
+def csv_columns() -> set[str]:
+    """The columns a CSV measurement file may have (those of every registered measurement kind,
+    plugins' included); records take the same keys (:func:`record_keys`)."""
+    cols = {"id", "kind", "config", "configuration", "unit", "sigma", "cov", "param", "value"}
+    for mm in registry().values():
+        cols.update(r.name for r in mm.roles)
+        cols.update(mm.values)
+        cols.update(mm.data)
+        cols.update(f"sigma_{v}" for v in mm.values)
+    return cols
+
+
+def record_keys() -> set[str]:
+    """The keys a measurement record (a JSON file's, or :func:`measurements_from_records`') may
+    have: the CSV columns, less ``param`` (known values come as ``known`` and ``configurations``),
+    plus ``comment`` (JSON has no comment lines)."""
+    return (csv_columns() - {"param"}) | {"comment"}
+
+
 def measurements_from_records(
     records: Iterable[Mapping[str, Any]], model=None, *, known=None, configurations=None
 ) -> MeasurementSet:
@@ -675,6 +694,11 @@ def measurements_from_records(
         builder.configuration(config, None)
         for name, value in values.items():
             builder.known_value(name, value, config, None)
+    allowed = record_keys()
     for i, record in enumerate(records):
-        builder.add({k.lower(): v for k, v in record.items()}, None, i + 1)
+        lowered = {str(k).lower(): v for k, v in record.items()}
+        for key in lowered:
+            if key not in allowed:  # a typo ("sigam") would silently be the default
+                raise MeasurementFileError(f"record {i + 1}: unknown key '{key}'", None, hint=suggest(key, allowed))
+        builder.add(lowered, None, i + 1)
     return builder.result()
