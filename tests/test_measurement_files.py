@@ -573,3 +573,22 @@ def test_records_from_python_refuse_unknown_keys_as_files_do():
     with pytest.raises(MeasurementFileError, match="record 1: unknown key 'sigam'") as info:
         measurements_from_records([{**record, "sigam": 0.05}], model)
     assert "sigma" in info.value.hint
+
+
+def test_a_cell_of_another_kinds_column_is_an_error_not_ignored(tmp_path):
+    """In a file of mixed kinds each row fills its own kind's columns; a σ written in a point3d
+    column of an image-point row would be silently ignored."""
+    model = load_model(MODELS / "teleexistence.mdl")
+    header = "id,kind,camera,point,u,v,x,y,z,sigma,sigma_x,param,value\n"
+    good = "a,image_point,eyes.left,lever.tip,1,2,,,,0.5,,,\nb,point3d,,lever.tip,,,1,2,3,,0.01,,\n"
+    path = tmp_path / "mixed.csv"
+    path.write_text(header + good)
+    assert len(read_measurements(path, model)) == 2
+    path.write_text(header + good + "c,image_point,eyes.left,lever.hub,1,2,,,,,0.2,,\n")
+    with pytest.raises(MeasurementFileError) as info:
+        read_measurements(path, model)
+    assert "'sigma_x' does not apply to a 'image_point' measurement" in info.value.message
+    assert (info.value.span.line, info.value.span.column) == (4, 43)  # the 0.2
+    path.write_text(header + good + "d,image_point,eyes.left,lever.hub,1,2,,,,,,lever.angle,\n")
+    with pytest.raises(MeasurementFileError, match="'param' does not apply"):
+        read_measurements(path, model)

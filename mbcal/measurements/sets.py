@@ -381,6 +381,7 @@ class SetBuilder:
         # Likewise the refs: 2,000 views of a 54-corner board name 54 (camera, point) pairs, not
         # 108,000 (a dict each was ~20 MB; nothing mutates a measurement's refs).
         self._refs: dict[tuple[tuple[str, str], ...], dict[str, str]] = {}
+        self._applies: dict[str, set[str]] = {}  # per kind: the keys a record of it may fill
 
     def configuration(self, config: str, where: SourceSpan | None) -> None:
         """Note a configuration the file lists (with or without known values) and where."""
@@ -454,6 +455,24 @@ class SetBuilder:
             )
         mm = self.models[kind]
         kind = mm.kind  # one string shared by every measurement of the kind
+        applies = self._applies.get(kind)
+        if applies is None:
+            applies = self._applies[kind] = (
+                _COMMON_KEYS
+                | {r.name for r in mm.roles}
+                | set(mm.values)
+                | set(mm.data)
+                | {f"sigma_{v}" for v in mm.values}
+            )
+        for key, cell in record.items():
+            if key not in applies and cell is not None and not (isinstance(cell, str) and not cell.strip()):
+                # a cell of another kind's column (a file of mixed kinds): given here, it would be ignored
+                raise MeasurementFileError(
+                    f"'{key}' does not apply to a '{kind}' measurement (it takes "
+                    f"{', '.join([*(r.name for r in mm.roles), *mm.values, *mm.data])})",
+                    where,
+                    field=key,
+                )
         mid = str(record.get("id") or "").strip() or f"{kind}{index}"
         if mid in self.ids:
             first = self.ids[mid]
@@ -662,6 +681,11 @@ def merge_measurements(sets: Sequence[MeasurementSet]) -> MeasurementSet:
                 target[name] = value
         out.images.update(ms.images)
     return out
+
+
+_COMMON_KEYS = {"id", "kind", "config", "configuration", "unit", "sigma", "cov", "value", "comment"}
+"""Keys of every measurement record, whatever its kind (a CSV file's ``param`` column belongs to
+its ``known`` rows: empty in a measurement row)."""
 
 
 def csv_columns() -> set[str]:
