@@ -10,7 +10,6 @@ accepts the last two); 130 means interrupted.
 from __future__ import annotations
 
 import argparse
-import fnmatch
 import json
 import math
 import os
@@ -122,11 +121,8 @@ def parse_assignments(items: Sequence[str], model=None, option: str = "--set") -
         if not math.isfinite(value):
             raise MbcalError(f"{option} {name}: value must be finite")
         if model is not None and dim is not None:
-            base = name.split("@", 1)[0]
-            matched = fnmatch.filter(model.names("param"), base) if any(ch in base for ch in "*?[") else [base]
-            for param in matched:
-                if model.has("param", param):
-                    _check_dimension(dim, unit, param, option, model.param(param).dim)
+            for param in model.match_params(name.split("@", 1)[0]):
+                _check_dimension(dim, unit, param, option, model.param(param).dim)
         out[name] = value
     return out
 
@@ -617,26 +613,23 @@ def cmd_studio(args: argparse.Namespace) -> int:
 # ---- kinematics -----------------------------------------------------------------------------------------
 
 
-def _seed(text: str) -> int:
-    """--seed: a whole number ≥ 0 (NumPy's generators take no negative seed)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number ≥ 0, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected a whole number ≥ 0, got {value}")
-    return value
+def _whole(low: int, high: int | None, what: str) -> Callable[[str], int]:
+    """An argparse type: a whole number from ``low`` to ``high`` (None: no upper end)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = None
+        if value is None or value < low or (high is not None and value > high):
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text}")
+        return value
+
+    return parse
 
 
-def _port(text: str) -> int:
-    """--port: 0 (any free port) to 65535."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a port number, got {text!r}") from None
-    if not 0 <= value <= 65535:
-        raise argparse.ArgumentTypeError(f"expected a port from 0 (any free one) to 65535, got {value}")
-    return value
+_seed = _whole(0, None, "a whole number ≥ 0")  # NumPy's generators take no negative seed
+_port = _whole(0, 65535, "a port from 0 (any free one) to 65535")
 
 
 def _quantities(text: str, option: str, meant: Sequence[tuple[str, Any]] = ()) -> list[float]:
@@ -1201,7 +1194,8 @@ def _shown(model, name: str, value: float, std: float) -> str:
 def cmd_watch(args: argparse.Namespace) -> int:
     from mbcal.range.manager import ModelManager  # lazy: keeps JAX out of 'mbcal check'
 
-    # σ per update, with a unit of the unknowns' dimension (lever.angle=0.5deg) or in SI units
+    # σ per update, with a unit of the unknowns' dimension (lever.angle=0.5deg) or in SI units; read
+    # with the model before the manager makes its folder, so a bad option leaves nothing behind
     noise = parse_assignments(args.process_noise or [], _load(args.model), "--process-noise")
     manager = ModelManager(
         args.model,

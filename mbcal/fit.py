@@ -57,7 +57,7 @@ from typing import Any
 import numpy as np
 
 from mbcal.measurements.registry import get_model
-from mbcal.observability import Observability, ObservabilityConfig, scale_stand_ins
+from mbcal.observability import Observability, ObservabilityConfig, scale_stand_ins, yardstick_text
 from mbcal.problem import Problem
 
 
@@ -249,12 +249,7 @@ class WeakDirection:
 
     def range_text(self) -> str:
         """What ``sigma`` is a fraction of, for "σ along this direction is 707 % of …"."""
-        if not self.stand_ins:
-            return "the search range"
-        listed = "; ".join(self.stand_ins)
-        if len(self.stand_ins) == len(self.names):
-            return f"its range, ± its scale (no search range; {listed})"
-        return f"its range (the search range; without one, ± its scale: {listed})"
+        return yardstick_text(self.stand_ins, len(self.names), half=False)
 
     def to_json(self) -> dict[str, Any]:
         return {"names": list(self.names), "sigma_fraction": _num(self.sigma)}
@@ -564,9 +559,8 @@ def _weak_directions(obs: Observability, fraction: float, coefficient_tol: float
     covariance in the same scaled units.  Every unknown with a finite σ is tested, with a search
     range or without: one yardstick, the observability analysis's."""
     by_blocks = getattr(obs.covariance, "weak_directions", None)
-    n = len(obs.names)
     if by_blocks is not None:  # a structured problem's covariance (mbcal.structured.BlockCovariance): no n × n matrix
-        found, condition = by_blocks(np.ones(n, dtype=bool), fraction, coefficient_tol)
+        found, condition = by_blocks(fraction, coefficient_tol)
         return [WeakDirection(names, sigma) for names, sigma in found], condition
     cov = np.asarray(obs.covariance, dtype=float)
     use = np.isfinite(np.diag(cov))  # the unobservable unknowns' rows and columns are inf

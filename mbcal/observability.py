@@ -34,6 +34,7 @@ __all__ = [
     "scale_sources",
     "scale_stand_ins",
     "weak_scale_text",
+    "yardstick_text",
     "PointUncertainty",
     "PointUncertainties",
     "PointLabels",
@@ -239,16 +240,25 @@ def scale_stand_ins(names: Sequence[str], params) -> list[str]:
     return out
 
 
+def yardstick_text(stand_ins: Sequence[str], count: int, *, half: bool) -> str:
+    """What σ along a direction of ``count`` unknowns is measured in, ``stand_ins`` those without
+    a search range (:func:`scale_stand_ins`): one scale, half the search range (``half``: the
+    observability analysis's "14 × …"), or two, the whole range (the fit verdict's "707 % of …")."""
+    listed = "; ".join(stand_ins)
+    if not stand_ins:
+        return "half the search range" if half else "the search range"
+    if len(stand_ins) == count:
+        return f"{'its scale' if half else 'its range, ± its scale'} (no search range; {listed})"
+    if half:
+        return f"its scale (half the search range; without one, {listed})"
+    return f"its range (the search range; without one, ± its scale: {listed})"
+
+
 def weak_scale_text(names: Sequence[str], params) -> str:
     """What σ along a weakly observable direction of ``names`` is measured in — each unknown's
-    scale (:func:`unknown_scales`) — for "σ along this direction is 14 × …": "half the search
-    range", or, where unknowns have no search range, their scales."""
+    scale (:func:`unknown_scales`) — for "σ along this direction is 14 × …"."""
     stand_ins = scale_stand_ins(names, params) if params is not None else []
-    if not stand_ins:
-        return "half the search range"
-    if len(stand_ins) == len(names):
-        return f"its scale (no search range; {'; '.join(stand_ins)})"
-    return f"its scale (half the search range; without one, {'; '.join(stand_ins)})"
+    return yardstick_text(stand_ins, len(names), half=True)
 
 
 def _sparse_basis(N: np.ndarray) -> np.ndarray:

@@ -1306,36 +1306,32 @@ class BlockCovariance:
         return idx, C
 
     def weak_directions(
-        self, tested: np.ndarray, fraction: float, coefficient_tol: float
+        self, fraction: float, coefficient_tol: float
     ) -> tuple[list[tuple[tuple[str, ...], float]], float]:
         """:func:`mbcal.fit._weak_directions` without the n × n matrix: the directions of the
-        ``tested`` unknowns whose σ exceeds ``fraction`` of their ranges (twice their natural
-        scales), and the condition number of the observable part of the covariance (scaled by the
-        natural scales).
+        unknowns (those with a finite σ) whose σ exceeds ``fraction`` of their ranges (twice their
+        natural scales), and the condition number of the observable part of the covariance
+        (scaled by the natural scales).
 
-        Up to :data:`WEAK_EXACT` tested unknowns, their covariance block exactly (as the dense
+        Up to :data:`WEAK_EXACT` unknowns, their covariance block exactly (as the dense
         path).  Beyond, each block's unknowns with the shared ones (:meth:`joint`: 300 views are
         300 matrices of 15 × 15, not one of 1,809 × 1,809, which took 1.2 s): a weak direction
         within a view, within the shared unknowns, or between them is found; one spread over
         several views is not (the condition number still bounds the whole)."""
         finite = ~self.infinite
         n = self.shape[0]
-        condition = 1.0
-        if finite.any():
-            idx = np.nonzero(finite)[0]
+        if not finite.any():
+            return [], 1.0
+        u = np.nonzero(finite)[0]
 
-            def cov_scaled(v: np.ndarray) -> np.ndarray:
-                full = np.zeros(n)
-                full[idx] = v
-                return self._apply(full)[idx] * self.chi2_scale
+        def cov_scaled(v: np.ndarray) -> np.ndarray:
+            full = np.zeros(n)
+            full[u] = v
+            return self._apply(full)[u] * self.chi2_scale
 
-            big, _ = _largest_eigenvalues(cov_scaled, len(idx))
-            small = self._smallest(idx)
-            condition = float(np.sqrt(big[-1] / small)) if big[-1] > 0 and small > 0 else 1.0
-        use = finite & np.asarray(tested, dtype=bool)
-        if not use.any():
-            return [], condition
-        u = np.nonzero(use)[0]
+        big, _ = _largest_eigenvalues(cov_scaled, len(u))
+        small = self._smallest(u)
+        condition = float(np.sqrt(big[-1] / small)) if big[-1] > 0 and small > 0 else 1.0
         if len(u) <= WEAK_EXACT:
             width = 2.0 * self.scales[u]
             Cs = self[u, u] / np.outer(width, width)
@@ -1344,7 +1340,7 @@ class BlockCovariance:
         else:
             at, C = self.joint()  # (B, c) unknowns, (B, c, c) covariances in SI units
             width = 2.0 * self.scales[at]
-            keep = use[at]
+            keep = finite[at]
             Cs = np.where(keep[:, :, None] & keep[:, None, :], C / (width[:, :, None] * width[:, None, :]), 0.0)
             lam_all, V_all = np.linalg.eigh((Cs + np.swapaxes(Cs, 1, 2)) / 2)
             groups = [(at[b], lam_all[b], V_all[b]) for b in np.nonzero((lam_all > fraction**2).any(axis=1))[0]]

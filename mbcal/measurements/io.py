@@ -76,16 +76,6 @@ MAX_FILE_BYTES = 512 * 1024 * 1024
 # ---- CSV ---------------------------------------------------------------------------------------------
 
 
-def _csv_columns() -> set[str]:
-    """The columns a CSV file may have (:func:`mbcal.measurements.sets.csv_columns`)."""
-    return csv_columns()
-
-
-def _json_record_keys() -> set[str]:
-    """The keys a JSON measurement record may have (:func:`mbcal.measurements.sets.record_keys`)."""
-    return record_keys()
-
-
 def _field_columns(line: str, n: int) -> list[int]:
     """1-based character columns where each of n comma-separated fields starts (best effort)."""
     cols, pos = [], 1
@@ -141,7 +131,7 @@ def _read_csv(handle, path: str, builder: SetBuilder) -> None:
     lines = _Lines(handle, path)
     reader = csv.reader(lines)
     header: list[str] | None = None
-    allowed = _csv_columns()
+    allowed = csv_columns()
     for row in reader:
         line_no = reader.line_num
         if not row or all(not c.strip() for c in row):
@@ -301,7 +291,7 @@ def _read_json(text: str, path: str, builder: SetBuilder) -> None:
     if not isinstance(items, list):
         raise MeasurementFileError("'measurements' must be a list", top)
     offsets = _json_line_index(text)
-    allowed = _json_record_keys()
+    allowed = record_keys()
     for i, item in enumerate(items):
         if i < len(offsets):
             off = offsets[i]

@@ -167,24 +167,28 @@ class ModelManager:
         self.model_path = Path(model_path)
         self.model = load_model(model_path)
         self.out = Path(out)
-        _check_out_dir(self.out, [self.model_path, *self.model.files])
         self.estimate = list(estimate)
         self.options = options or FitOptions()
         self.drift_k = drift_k
-        self.process_noise = dict(process_noise or {})
-        estimated = [n for n in self.model.names("param") if any(fnmatch.fnmatchcase(n, e) for e in self.estimate)]
-        for pattern, s in self.process_noise.items():
-            if not any(fnmatch.fnmatchcase(n, pattern) for n in estimated):
+        self.set_process_noise(process_noise or {})  # checked before the folder is made
+        _check_out_dir(self.out, [self.model_path, *self.model.files])
+        self.sensor, self.frame, self.sigma = sensor, frame, sigma
+        self.history: list[Update] = []
+        self.prior: Prior | None = None
+        self._resume()
+
+    def set_process_noise(self, process_noise: Mapping[str, float]) -> None:
+        """σ per update by pattern (SI units); each pattern must match an estimated unknown."""
+        estimated = list(dict.fromkeys(n for e in self.estimate for n in self.model.match_params(e)))
+        for pattern, s in process_noise.items():
+            if not set(self.model.match_params(pattern)) & set(estimated):
                 raise MbcalError(
                     f"process noise for '{pattern}': no estimated unknown matches it",
                     hint=f"the unknowns: {', '.join(estimated) or 'none'}",
                 )
             if not (np.isfinite(s) and s >= 0):
                 raise MbcalError(f"process noise for '{pattern}' must be a finite σ ≥ 0, got {s}")
-        self.sensor, self.frame, self.sigma = sensor, frame, sigma
-        self.history: list[Update] = []
-        self.prior: Prior | None = None
-        self._resume()
+        self.process_noise = dict(process_noise)
 
     # ---- persistence ----------------------------------------------------------------------------------
 

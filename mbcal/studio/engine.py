@@ -124,6 +124,9 @@ def _object_of(shape_name: str) -> str:
 
 _MISSING = object()
 
+_UNSAFE_IN_NAMES = re.compile(r"[\x00-\x1f/\\]")
+"""What a name that travels in the page's requests may not hold (the server's ``Name`` rule)."""
+
 MAX_EDGE_SETS = 256
 """Edge sets kept per loaded model (one per shape and size seen): a bound on the memory a long
 session of slider drags takes."""
@@ -171,7 +174,7 @@ class Engine:
         self.out.mkdir(parents=True, exist_ok=True)
         self.photos: dict[str, Photo] = {}
         for i, (camera, config, path) in enumerate(photos):
-            if not config or re.search(r"[\x00-\x1f/\\]", config):
+            if not config or _UNSAFE_IN_NAMES.search(config):
                 raise MbcalError(f"configuration name {config!r}: a name without '/', '\\' or control characters")
             p = Path(path)
             if not p.is_file():
@@ -292,7 +295,7 @@ class Engine:
         taken = {m.id for m in self.loaded.inputs}
         for m in self.loaded.inputs:
             if m.kind == "image_point" and m.value is not None:
-                cid = re.sub(r"[\x00-\x1f/\\]", "_", m.id)  # ids travel in the page's requests: no slashes
+                cid = _UNSAFE_IN_NAMES.sub("_", m.id)  # ids travel in the page's requests: no slashes
                 if cid != m.id:  # cleaned: made unique again ('a/1' and 'a_1' are both in the file)
                     base, k = cid, 2
                     while cid in taken:
