@@ -400,6 +400,41 @@ def test_unknown_keys_in_json_records_are_errors(tmp_path, lever, monkeypatch, e
         assert hint in str(info.value)
 
 
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        # the second 'sigma' of the second record: json would keep 3 px silently
+        (
+            '{"measurements": [\n  {"kind": "image_point", "camera": "eye", "point": "lever.hub", "u": 1, "v": 2},\n'
+            '  {"kind": "image_point", "camera": "eye", "point": "lever.tip", "u": 1, "v": 2, "sigma": 0.5, '
+            '"sigma": 3}\n]}\n',
+            "m.json:3:96: key 'sigma' written twice in one object",
+        ),
+        # a nested object: the inner one is named, not the outer
+        (
+            '{"known": {"lever.length": 1, "lever.length": 2},\n "measurements": []}\n',
+            "m.json:1:31: key 'lever.length' written twice in one object",
+        ),
+        # the top level
+        ('{"measurements": [],\n "measurements": []}\n', "m.json:2:2: key 'measurements' written twice"),
+        # keys of a record ignore case: 'Sigma' and 'sigma' are one key
+        (
+            '[\n  {"kind": "image_point", "camera": "eye", "point": "lever.hub", "u": 1, "v": 2, '
+            '"Sigma": 1, "sigma": 2}\n]',
+            "m.json:2:3: key 'sigma' written twice in measurements[0] (keys ignore case)",
+        ),
+    ],
+)
+def test_a_json_key_written_twice_is_an_error_at_the_second(tmp_path, lever, monkeypatch, text, message):
+    """json.loads keeps the last of two equal keys silently: a record with two σ would be read with
+    the second and the file would look fine."""
+    monkeypatch.chdir(tmp_path)
+    write(tmp_path, "m.json", text)
+    with pytest.raises(MeasurementFileError) as info:
+        read_measurements("m.json", lever)
+    assert str(info.value).startswith(message), str(info.value)
+
+
 def test_json_records_take_every_csv_column(tmp_path, lever):
     """The keys a JSON record may have are the CSV's columns, whatever the kind (and a comment)."""
     ms = read_measurements(

@@ -218,15 +218,12 @@ def _json_line_index(text: str) -> list[int]:
     return offsets
 
 
-def _json_key_spans(text: str, path: str, section: str) -> dict[str, SourceSpan]:
-    """Where each key of the top-level object ``section`` ("known", "configurations") is written
-    (best effort: keys not found are left out)."""
-    m = re.search(r'"' + section + r'"\s*:\s*\{', text)
-    if m is None:
-        return {}
+def _object_keys(text: str, start: int) -> list[tuple[str, int]]:
+    """The keys of the JSON object whose ``{`` is at offset ``start``, with their offsets, in the
+    order written (a key written twice is listed twice; best effort: stops at what it cannot read)."""
     decoder = json.JSONDecoder()
-    pos = m.end()
-    spans: dict[str, SourceSpan] = {}
+    pos = start + 1
+    keys: list[tuple[str, int]] = []
     try:
         while True:
             while pos < len(text) and text[pos] in " \t\r\n,":
@@ -234,22 +231,94 @@ def _json_key_spans(text: str, path: str, section: str) -> dict[str, SourceSpan]
             if pos >= len(text) or text[pos] != '"':
                 break
             key, end = decoder.raw_decode(text, pos)
-            line = text.count("\n", 0, pos) + 1
-            spans.setdefault(str(key), SourceSpan(path, line, pos - (text.rfind("\n", 0, pos) + 1) + 1))
+            keys.append((str(key), pos))
             pos = end
             while pos < len(text) and text[pos] in " \t\r\n:":
                 pos += 1
             _, pos = decoder.raw_decode(text, pos)
     except ValueError:
         pass
+    return keys
+
+
+def _span_at(text: str, path: str, offset: int) -> SourceSpan:
+    return SourceSpan(path, text.count("\n", 0, offset) + 1, offset - (text.rfind("\n", 0, offset) + 1) + 1)
+
+
+def _json_key_spans(text: str, path: str, section: str) -> dict[str, SourceSpan]:
+    """Where each key of the top-level object ``section`` ("known", "configurations") is written
+    (best effort: keys not found are left out)."""
+    m = re.search(r'"' + section + r'"\s*:\s*\{', text)
+    if m is None:
+        return {}
+    spans: dict[str, SourceSpan] = {}
+    for key, offset in _object_keys(text, m.end() - 1):
+        spans.setdefault(key, _span_at(text, path, offset))
     return spans
 
 
-def _read_json(text: str, path: str, builder: SetBuilder) -> None:
+class _DuplicateKeyError(Exception):
+    """A JSON object names one key twice (raised while parsing; ``start``: the object's offset)."""
+
+    def __init__(self, key: str) -> None:
+        super().__init__(key)
+        self.key = key
+        self.start: int | None = None
+
+
+def _unique_pairs(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    seen: set[str] = set()
+    for key, _ in pairs:
+        if key in seen:
+            raise _DuplicateKeyError(key)
+        seen.add(key)
+    return dict(pairs)
+
+
+def _duplicate_key_span(text: str, path: str, key: str) -> SourceSpan:
+    """Where the second ``key`` of the object that names it twice is written: the file is parsed
+    again by json's Python scanner, which tells the object's offset (only after a duplicate is
+    found: the C parser is the fast path)."""
+    decoder = json.JSONDecoder(object_pairs_hook=_unique_pairs)
+    plain = decoder.parse_object  # type: ignore[attr-defined]
+
+    def parse_object(s_and_end: tuple[str, int], *rest: Any) -> Any:
+        try:
+            return plain(s_and_end, *rest)
+        except _DuplicateKeyError as dup:
+            if dup.start is None:  # the innermost object: the one that names the key twice
+                dup.start = s_and_end[1] - 1
+            raise
+
+    decoder.parse_object = parse_object  # type: ignore[attr-defined]
+    decoder.scan_once = json.scanner.py_make_scanner(decoder)  # type: ignore[attr-defined]
     try:
-        doc = json.loads(text)
+        decoder.decode(text)
+    except _DuplicateKeyError as dup:
+        offsets = [offset for k, offset in _object_keys(text, dup.start or 0) if k == key]
+        if len(offsets) > 1:
+            return _span_at(text, path, offsets[1])
+        return _span_at(text, path, dup.start or 0)
+    return SourceSpan(path, 1, 1)
+
+
+def _load_json(text: str, path: str) -> Any:
+    """The parsed file; invalid JSON and a key written twice in one object (json keeps the last
+    silently) are errors at their place."""
+    try:
+        return json.loads(text, object_pairs_hook=_unique_pairs)
     except json.JSONDecodeError as err:
         raise MeasurementFileError(f"invalid JSON: {err.msg}", SourceSpan(path, err.lineno, err.colno)) from None
+    except _DuplicateKeyError as dup:
+        raise MeasurementFileError(
+            f"key '{dup.key}' written twice in one object",
+            _duplicate_key_span(text, path, dup.key),
+            hint="JSON keeps only the last of the two; write the key once",
+        ) from None
+
+
+def _read_json(text: str, path: str, builder: SetBuilder) -> None:
+    doc = _load_json(text, path)
     if isinstance(doc, list):
         doc = {"measurements": doc}
     if not isinstance(doc, dict):
@@ -303,6 +372,9 @@ def _read_json(text: str, path: str, builder: SetBuilder) -> None:
         if not isinstance(item, dict):
             raise MeasurementFileError(f"measurements[{i}] must be an object", where)
         record = {k.lower(): v for k, v in item.items()}
+        if len(record) < len(item):  # keys are read without case: "Sigma" and "sigma" are one key
+            twice = next(k for k in record if sum(1 for j in item if j.lower() == k) > 1)
+            raise MeasurementFileError(f"key '{twice}' written twice in measurements[{i}] (keys ignore case)", where)
         for key in record:
             if key not in allowed:  # a typo ("sigam") would silently be the default
                 raise MeasurementFileError(f"unknown key '{key}'", where, hint=suggest(key, allowed))
