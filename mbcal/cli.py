@@ -327,7 +327,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
         loaded = [load_scan(path, model, sensor=args.sensor, sigma=args.scan_sigma) for path in scans]
         sets.append(scan_measurements(model, loaded, voxel=args.voxel, max_points=args.scan_points))
         args.loss = args.loss or "cauchy"  # scans hold points of things the model does not: robust
-    data = merge_measurements(sets)
+    data = merge_measurements(sets, model)
     known = parse_assignments(args.set or [], model)
     config = _solver_config(args)
     estimate = _estimate(model, args.estimate)
@@ -522,7 +522,7 @@ def cmd_calibrate_camera(args: argparse.Namespace) -> int:
     inputs = [args.model, *args.measurements]
     _check_outputs(args, inputs)
     model = _load(args.model)
-    data = merge_measurements([read_measurements(path, model) for path in args.measurements])
+    data = merge_measurements([read_measurements(path, model) for path in args.measurements], model)
     progress = Progress(not args.quiet)
     progress.step("initialising (Zhang's method) and refining")
     if args.restarts is not None:

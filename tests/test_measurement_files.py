@@ -540,6 +540,51 @@ def test_a_configuration_only_measured_in_must_give_the_per_configuration_values
     ), str(info.value)
 
 
+def test_files_given_together_must_give_per_configuration_values_in_every_configuration(
+    tmp_path, arm, monkeypatch, capsys
+):
+    """Each file is complete alone (one gives the readings of c1 and c2, the other measures in c1,
+    c2 and c3 and gives none); together c3 would have had the nominal reading in silence."""
+    from mbcal.cli import main
+    from mbcal.measurements.sets import merge_measurements
+
+    monkeypatch.chdir(tmp_path)
+    readings = {
+        "configurations": {"c1": {"arm.q4": 0.1}, "c2": {"arm.q4": 0.2}},
+        "measurements": [
+            {"id": f"r{c}", "kind": "image_point", "config": c, "camera": "eyes.left", "point": "hand.tip"}
+            for c in ("c1", "c2")
+        ],
+    }
+    write(tmp_path, "readings.json", json.dumps(readings))
+    write(
+        tmp_path,
+        "clicks.csv",
+        "id,kind,config,camera,point\n"
+        "a,image_point,c1,eyes.left,hand.wrist\n"
+        "b,image_point,c2,eyes.left,hand.wrist\n"
+        "c,image_point,c3,eyes.left,hand.wrist\n",
+    )
+    sets = [read_measurements(name, arm) for name in ("readings.json", "clicks.csv")]  # each alone: fine
+    with pytest.raises(MeasurementFileError) as info:
+        merge_measurements(sets, arm)
+    assert str(info.value).startswith(
+        "clicks.csv:4:1: configuration 'c3', which measurements are taken in, gives no value for 'arm.q4', "
+        "which configurations 'c1', 'c2' give"
+    ), str(info.value)
+    argv = ["solve", str(MODELS / "arm7.mdl"), "readings.json", "clicks.csv", "--estimate", "arm.offset*", "-q"]
+    assert main(argv) == 2
+    assert "clicks.csv:4:1: configuration 'c3', which measurements" in capsys.readouterr().err
+    # a third file that gives the value once for every configuration covers c3 (c1 keeps its own)
+    write(
+        tmp_path,
+        "default.csv",
+        "id,kind,config,camera,point,param,value\n,known,,,,arm.q4,0.5\nd,image_point,c3,eyes.left,hand.tip,,\n",
+    )
+    merged = merge_measurements([*sets, read_measurements("default.csv", arm)], arm)
+    assert merged.known == {"arm.q4": 0.5} and merged.configurations["c1"] == {"arm.q4": 0.1}
+
+
 def test_per_configuration_values_given_everywhere_or_nowhere_are_read(tmp_path, arm):
     """A parameter never given keeps its nominal value; one given once for every configuration is
     the value of the configurations that do not give their own."""

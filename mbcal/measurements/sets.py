@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -615,49 +615,68 @@ class SetBuilder:
         return MeasurementSet(self.measurements, self.known, self.configurations, self.path, self.images)
 
     def _check_configurations(self) -> None:
-        """Refuse a per-configuration value given in some configurations but not in another
-        that the file lists or measures in: the parameter would silently keep the model's
-        nominal value there.  (A value given once for every configuration covers the others;
-        a parameter the file never gives keeps its nominal value everywhere.)"""
-        givers: dict[str, list[str]] = {}
-        for config, names in self._given.items():
-            if config is not None:
-                for full in names:
-                    givers.setdefault(full, []).append(config)
-        if not givers:
-            return
-        everywhere = self._given.get(None, {})
-        for config in dict.fromkeys([*self.configurations, *self._configs]):
-            have = self._given.get(config, {})
-            missing = [n for n in givers if n not in have and n not in everywhere]
-            if not missing:
-                continue
-            name = missing[0]
-            others = givers[name]
-            shown = ", ".join(f"'{c}'" for c in others[:3]) + (
-                f" and {len(others) - 3} more" if len(others) > 3 else ""
-            )
-            also = ""
-            if len(missing) > 1:
-                rest = ", ".join(f"'{n}'" for n in missing[1:4]) + (", ..." if len(missing) > 4 else "")
-                also = f" (nor for {rest})"
-            listed = "" if config in self.configurations else ", which measurements are taken in,"
-            raise MeasurementFileError(
-                f"configuration '{config}'{listed} gives no value for '{name}'{also}, which "
-                f"{'configuration' if len(others) == 1 else 'configurations'} {shown} "
-                f"{'gives' if len(others) == 1 else 'give'}: a per-configuration value must be given in every "
-                "configuration, or it would silently take the model's nominal value there",
-                self._config_where.get(config),
-                hint=f"give '{name}' in configuration '{config}' too, or once without a configuration as its "
-                "value in every configuration that does not give its own",
-            )
+        check_configurations(
+            self._given, [*self.configurations, *self._configs], self._config_where, self.configurations
+        )
 
 
-def merge_measurements(sets: Sequence[MeasurementSet]) -> MeasurementSet:
+def check_configurations(
+    given: Mapping[str | None, Mapping[str, str]],
+    configs: Sequence[str],
+    where: Mapping[str, SourceSpan | None],
+    listed: Collection[str] = (),
+) -> None:
+    """Refuse a per-configuration value given in some configurations but not in another that is
+    listed or measured in: the parameter would silently keep the model's nominal value there.
+    (A value given once for every configuration covers the others; a parameter never given keeps
+    its nominal value everywhere.)
+
+    ``given``: configuration (None: every configuration) → {full parameter name: the name as
+    written}; ``configs``: the configurations listed or measured in, in order; ``where``: where
+    each is first seen; ``listed``: those written in a list of configurations (the others are
+    only measured in, and the message says so)."""
+    givers: dict[str, list[str]] = {}
+    for config, names in given.items():
+        if config is not None:
+            for full in names:
+                givers.setdefault(full, []).append(config)
+    if not givers:
+        return
+    everywhere = given.get(None, {})
+    for config in dict.fromkeys(configs):
+        have = given.get(config, {})
+        missing = [n for n in givers if n not in have and n not in everywhere]
+        if not missing:
+            continue
+        name = missing[0]
+        others = givers[name]
+        shown = ", ".join(f"'{c}'" for c in others[:3]) + (f" and {len(others) - 3} more" if len(others) > 3 else "")
+        also = ""
+        if len(missing) > 1:
+            rest = ", ".join(f"'{n}'" for n in missing[1:4]) + (", ..." if len(missing) > 4 else "")
+            also = f" (nor for {rest})"
+        measured = "" if config in listed else ", which measurements are taken in,"
+        raise MeasurementFileError(
+            f"configuration '{config}'{measured} gives no value for '{name}'{also}, which "
+            f"{'configuration' if len(others) == 1 else 'configurations'} {shown} "
+            f"{'gives' if len(others) == 1 else 'give'}: a per-configuration value must be given in every "
+            "configuration, or it would silently take the model's nominal value there",
+            where.get(config),
+            hint=f"give '{name}' in configuration '{config}' too, or once without a configuration as its "
+            "value in every configuration that does not give its own",
+        )
+
+
+def merge_measurements(sets: Sequence[MeasurementSet], model=None) -> MeasurementSet:
     """One set from several files: measurements appended, known values and images merged.
 
     Configurations with the same name are the same configuration.  Raises when two files use
-    the same measurement id or give different known values for the same parameter.
+    the same measurement id or give different known values for the same parameter, and when the
+    files together give a per-configuration value in some configurations but not in another they
+    measure in (each file alone may be complete: one gives the joint readings of configurations a
+    and b, the other measures in a, b and c).  ``model`` resolves the parameters' names as written
+    (a short and a full name of one parameter are one parameter); without it they are compared as
+    written.
     """
     if len(sets) == 1:
         return sets[0]
@@ -680,6 +699,17 @@ def merge_measurements(sets: Sequence[MeasurementSet]) -> MeasurementSet:
                     raise MeasurementFileError(f"'{name}@{config}' is given two different values ({ms.path})")
                 target[name] = value
         out.images.update(ms.images)
+
+    def full(name: str) -> str:
+        return model.param(name).name if model is not None else name
+
+    given: dict[str | None, dict[str, str]] = {None: {full(n): n for n in out.known}}
+    for config, values in out.configurations.items():
+        given[config] = {full(n): n for n in values}
+    where: dict[str, SourceSpan | None] = {}
+    for m in out.measurements:
+        where.setdefault(m.config, m.where)
+    check_configurations(given, [*out.configurations, *where], where, out.configurations)
     return out
 
 

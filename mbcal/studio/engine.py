@@ -244,7 +244,7 @@ class Engine:
             try:
                 model = load_model(self.model_path)
                 sets = [read_measurements(p, model) for p in self.measurement_paths]
-                inputs = merge_measurements(sets) if sets else None
+                inputs = merge_measurements(sets, model) if sets else None
                 for photo in self.photos.values():
                     model.resolve("camera", photo.camera)
             except MbcalError as err:
@@ -718,7 +718,7 @@ class Engine:
         if inputs is None:
             return clicked
         others = inputs.subset([m.kind != "image_point" for m in inputs.measurements])
-        return merge_measurements([clicked, others]) if len(others) else clicked
+        return merge_measurements([clicked, others], loaded.model) if len(others) else clicked
 
     def _start_values(self, model: Model, names: list[str]) -> dict[str, float]:
         out = {}
