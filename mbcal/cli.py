@@ -244,6 +244,18 @@ def _estimate(model, patterns):
     return ranged
 
 
+def _finite_or_null(data: Any) -> Any:
+    """``data`` with every non-finite number (an unobservable σ, a χ² without degrees of freedom)
+    replaced by None: JSON has no inf or NaN."""
+    if isinstance(data, dict):
+        return {k: _finite_or_null(v) for k, v in data.items()}
+    if isinstance(data, (list, tuple)):
+        return [_finite_or_null(v) for v in data]
+    if isinstance(data, float) and not math.isfinite(data):
+        return None
+    return data
+
+
 def _write_json(data, target: str, inputs) -> None:
     text = json.dumps(data, indent=1, allow_nan=False) + "\n"
     if target == "-":
@@ -1125,7 +1137,13 @@ def _register_commands(sub) -> None:
     )
     p.add_argument("--poll", type=float, default=1.0, metavar="S", help="seconds between looks (default 1)")
     p.add_argument("--once", action="store_true", help="process the files there now and exit")
-    _quiet_option(p, "print nothing")
+    p.add_argument(
+        "--json",
+        action="store_true",
+        help="print each update as one JSON object per line (the fields of OUT/history.jsonl; "
+        "inf and NaN as null) instead of the text lines",
+    )
+    _quiet_option(p, "print nothing (with --json: only the JSON lines)")
 
 
 # ---- fit / watch (range data) --------------------------------------------------------------------------
@@ -1210,6 +1228,9 @@ def cmd_watch(args: argparse.Namespace) -> int:
     )
 
     def report(u) -> None:
+        if args.json:  # one strict JSON object per line (JSON has no inf or NaN: null)
+            print(json.dumps(_finite_or_null(u.to_json()), allow_nan=False), flush=True)
+            return
         if args.quiet:
             return
         if u.error:
@@ -1221,7 +1242,10 @@ def cmd_watch(args: argparse.Namespace) -> int:
         print(f"update {u.seq} ({state}, {u.points} points, χ²/dof {u.reduced_chi2:.3g}): {values}{flags}", flush=True)
 
     if not args.quiet and manager.history:
-        print(f"resumed: {len(manager.history)} updates in {manager.journal}")
+        print(
+            f"resumed: {len(manager.history)} updates in {manager.journal}",
+            file=sys.stderr if args.json else sys.stdout,
+        )
     manager.watch(args.scans, poll=args.poll, once=args.once, report=report)
     return 0
 

@@ -180,6 +180,49 @@ def test_an_unreadable_scan_is_journalled_and_the_watch_goes_on(tmp_path):
     assert seen[0].accepted and not seen[0].error and seen[0].files == [str((scans / "scan_0001.png").resolve())]
 
 
+@pytest.mark.slow
+def test_watch_json_prints_one_strict_json_object_per_update(tmp_path, capsys):
+    """`mbcal watch --json`: each update, the rejected one too, as one line of strict JSON with the
+    journal's fields (a pipeline reads stdout; the text lines and 'resumed' stay off it)."""
+    from mbcal.cli import main
+
+    model_path = _model_file(tmp_path)
+    model = mbcal.load_model(model_path)
+    scans, out = tmp_path / "in", tmp_path / "out"
+    scans.mkdir()
+    (scans / "scan_0001.png").write_bytes(b"partial")
+    write_depth_png(scans / "scan_0002.png", add_depth_noise(render_depth(model, ROOM_TRUTH), 1.5e-3, 0.0, seed=1))
+    argv = ["watch", str(model_path), "--scans", str(scans), "--out", str(out), "--estimate", "room.*", "--once"]
+
+    def strict(text):
+        def refuse(token):
+            raise AssertionError(f"{token} is not JSON")
+
+        return json.loads(text, parse_constant=refuse)
+
+    assert main([*argv, "--json"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    bad, good = (strict(line) for line in lines)
+    assert (bad["seq"], good["seq"]) == (1, 2)
+    assert not bad["accepted"] and "cannot read" in bad["error"]
+    assert good["accepted"] and not good["error"]
+    assert good == strict((out / "history.jsonl").read_text().splitlines()[1])  # the journal's record
+    assert abs(good["values"]["room.x"] - ROOM_TRUTH["room.x"]) < 3 * good["std"]["room.x"]
+    # a restart with nothing new prints no line on stdout; 'resumed' goes to stderr
+    assert main([*argv, "--json"]) == 0
+    captured = capsys.readouterr()
+    assert captured.out == "" and "resumed: 2 updates" in captured.err
+    assert "update 1 (REJECTED" not in captured.out
+    # non-finite numbers become null
+    from mbcal.cli import _finite_or_null
+
+    assert _finite_or_null({"a": [float("inf"), 1.0], "b": float("nan"), "c": "x"}) == {
+        "a": [None, 1.0],
+        "b": None,
+        "c": "x",
+    }
+
+
 def test_process_noise_must_name_an_estimated_unknown(tmp_path):
     model_path = _model_file(tmp_path)
     with pytest.raises(mbcal.MbcalError, match="no estimated unknown matches it"):
