@@ -695,7 +695,11 @@ ARM_PROFILE = (
     "cos(q + offset) from the sines and cosines of each: 19.5 ms; XLA's newer fusion "
     "emitters, which avoid the recomputation: 5.7 ms warm (and 9 iterations instead of 11, "
     "rounding), but +0.4 s of compile on every first call; a Cholesky step without LAPACK: "
-    "9.1 ms warm, +0.28 s of compile."
+    "9.1 ms warm, +0.28 s of compile; `jax.lax.optimization_barrier` around the joints' sines "
+    "and cosines (to have them computed once per attitude, not in every coordinate's kernel): "
+    "~17 % faster in an in-process A/B, but XLA:CPU drops the barriers before it fuses and the "
+    "kernels stayed as they were, so the gain is not understood and was not kept; around the "
+    "chain's end transform: no change."
 )
 
 
@@ -711,9 +715,12 @@ def notes(results: dict) -> list[str]:
                 f"{r['mbcal_iterations_max']}; the vmapped loop runs until the slowest is done).  The "
                 "largest cost found and removed (issue 16): jaxlib 0.10 handed the residual's fused "
                 "reductions to YNNPACK, slower than XLA's own loops at these sizes "
-                "(`mbcal._jax.compiler_options`).  Tried without gain: sharding restarts over both "
-                "cores, an explicit loop barrier.  The scipy goals are the notes' floor over the "
-                "notes' scipy; the column *the floor's ratio over scipy FD* shows what the "
+                "(`mbcal._jax.compiler_options`); and, under vmap, the normal equations JᵀJ, Jᵀr of the "
+                "64 restarts went to YNNPACK one small product at a time: summed elementwise "
+                "(`mbcal.solver.normal_equations`) the warm solves ran 4.40 → 3.77 ms (room) and "
+                "21.5 → 19.4 ms (arm) in an in-process A/B on the AMD machine.  Tried without gain: "
+                "sharding restarts over both cores, an explicit loop barrier.  The scipy goals are "
+                "the notes' floor over the notes' scipy; the column *the floor's ratio over scipy FD* shows what the "
                 "hand-written floor reaches against this scipy.  Tried and dropped: stepping only "
                 "the restarts still running, 16 at a time (the arm's slowest restart takes 11 "
                 "iterations, the median 6): the arm's warm solve ~13 → ~10 ms, but the nested loop "

@@ -37,6 +37,7 @@ _EXPORTS = {
     "read_measurements": "mbcal.measurements.io",
     "write_measurements": "mbcal.measurements.io",
     "measurements_from_records": "mbcal.measurements.io",
+    "merge_measurements": "mbcal.measurements.sets",
     "MeasurementSet": "mbcal.measurements.io",
     "Measurement": "mbcal.measurements.io",
     "MeasurementModel": "mbcal.measurements",
