@@ -333,3 +333,27 @@ def test_a_ctrl_c_that_python_swallows_in_a_finalizer_still_interrupts(tmp_path)
     assert done.returncode == 130, done.stderr
     assert "interrupted" in done.stderr and "Traceback" not in done.stderr
     assert not out.exists() and not list(tmp_path.glob("*.part"))
+
+
+@pytest.mark.parametrize(("m", "n"), [(1404, 87), (400, 16), (30, 20), (96, 6), (10, 14)])
+def test_the_spectrum_of_a_tall_jacobian_from_its_r_factor_is_the_svd(m, n):
+    """The observability analysis takes the SVD of R (J = QR) for a tall Jacobian instead of J's own
+    thin SVD (which forms an m × n U it throws away): the same singular values and right singular
+    vectors, a rank-deficient J included."""
+    from mbcal.observability import _spectrum
+
+    rng = np.random.default_rng(m * n)
+    J = rng.standard_normal((m, n)) * np.logspace(0, -8, n)
+    J[:, -1] = J[:, 0] - 2.0 * J[:, 1]  # an exact null direction
+    sv, V, mask = _spectrum(J, n, 1e-10)
+    _, expected, Vt = np.linalg.svd(J)
+    full = np.zeros(n)
+    full[: len(expected)] = expected
+    np.testing.assert_allclose(sv, full, rtol=1e-12, atol=1e-12 * full[0])
+    assert mask.sum() == min(m, n) - (1 if m >= n else 0)
+    # directions of distinct singular values agree up to sign; the null space is the same space
+    for j in range(int(mask.sum())):
+        assert abs(abs(V[:, j] @ Vt[j]) - 1.0) < 1e-9
+    null = V[:, mask.sum() :]
+    null_expected = Vt[mask.sum() :].T
+    np.testing.assert_allclose(null @ null.T, null_expected @ null_expected.T, atol=1e-9)
