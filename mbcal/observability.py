@@ -305,7 +305,8 @@ def _spectrum(J: np.ndarray, n: int, rtol: float) -> tuple[np.ndarray, np.ndarra
     # skips U (m × m: the cost of the analysis for a tall Jacobian).  For m ≥ 2n LAPACK's gesdd
     # factors J = QR and takes the SVD of R, then forms the m × n U = Q·U_R that is thrown away
     # here: the SVD of R alone gives the same singular values and V, bit for bit, in less than
-    # half the time (13 views of a 9 × 6 board, 1,404 × 87: 17 → 7.7 ms; 20,000 × 609: 3.9 → 1.6 s).
+    # half the time (random dense J of 1,404 × 87: 17 → 7.7 ms; 20,000 × 609: 3.9 → 1.6 s, 2 cores).
+    # The structured solver's analysis hands in an n × n R already and takes the other branch.
     m, k = J.shape
     if m >= 2 * k and k >= 16:
         _, sv, Vt = np.linalg.svd(np.linalg.qr(J, mode="r"))
