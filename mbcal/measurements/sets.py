@@ -457,13 +457,7 @@ class SetBuilder:
         kind = mm.kind  # one string shared by every measurement of the kind
         applies = self._applies.get(kind)
         if applies is None:
-            applies = self._applies[kind] = (
-                _COMMON_KEYS
-                | {r.name for r in mm.roles}
-                | set(mm.values)
-                | set(mm.data)
-                | {f"sigma_{v}" for v in mm.values}
-            )
+            applies = self._applies[kind] = _COMMON_KEYS | kind_keys(mm)
         for key, cell in record.items():
             if key not in applies and cell is not None and not (isinstance(cell, str) and not cell.strip()):
                 # a cell of another kind's column (a file of mixed kinds): given here, it would be ignored
@@ -721,13 +715,15 @@ its ``known`` rows: empty in a measurement row)."""
 def csv_columns() -> set[str]:
     """The columns a CSV measurement file may have (those of every registered measurement kind,
     plugins' included); records take the same keys (:func:`record_keys`)."""
-    cols = {"id", "kind", "config", "configuration", "unit", "sigma", "cov", "param", "value"}
+    cols = (_COMMON_KEYS - {"comment"}) | {"param"}
     for mm in registry().values():
-        cols.update(r.name for r in mm.roles)
-        cols.update(mm.values)
-        cols.update(mm.data)
-        cols.update(f"sigma_{v}" for v in mm.values)
+        cols |= kind_keys(mm)
     return cols
+
+
+def kind_keys(mm: MeasurementModel) -> set[str]:
+    """The columns (record keys) of one measurement kind: its roles, values, data and a σ per value."""
+    return {r.name for r in mm.roles} | set(mm.values) | set(mm.data) | {f"sigma_{v}" for v in mm.values}
 
 
 def record_keys() -> set[str]:
