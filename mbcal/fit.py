@@ -567,9 +567,12 @@ def _weak_directions(obs: Observability, fraction: float, coefficient_tol: float
     out: list[WeakDirection] = []
     if not np.any(use):
         return out, 1.0
-    scales = np.asarray(obs.scales, dtype=float)[use]
-    Cs = cov[np.ix_(use, use)] / np.outer(scales, scales)  # in scales: σ 1 is half the range
-    lam, V = np.linalg.eigh((Cs + Cs.T) / 2)
+    if obs.scaled_eigen is not None and np.all(use):  # the analysis's own SVD: the same, more precisely
+        lam, V = obs.scaled_eigen
+    else:
+        scales = np.asarray(obs.scales, dtype=float)[use]
+        Cs = cov[np.ix_(use, use)] / np.outer(scales, scales)  # in scales: σ 1 is half the range
+        lam, V = np.linalg.eigh((Cs + Cs.T) / 2)
     positive = lam[lam > 0]
     condition = float(np.sqrt(positive.max() / positive.min())) if positive.size else 1.0
     names = [nm for nm, u in zip(obs.names, use) if u]

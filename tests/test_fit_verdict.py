@@ -173,6 +173,27 @@ def test_observe_names_a_weakly_determined_plan(one_view):
     assert mbcal.observe(model, plan, ["cam.*", "board.*"], at=at, accept_poor_fit=True).ok
 
 
+def test_weak_directions_from_the_analysis_spectrum_equal_a_decomposition_of_the_covariance(one_view):
+    """The verdict reads the weak directions off the observability analysis's SVD (issue 16: no
+    second eigen-decomposition); they are those of the covariance itself, decomposed afresh."""
+    import dataclasses
+
+    from mbcal.fit import _weak_directions
+
+    model, path = one_view
+    obs = mbcal.workflows.cameras.calibrate_cameras(model, mbcal.read_measurements(path, model)).result.observability
+    assert obs.scaled_eigen is not None  # every σ finite: the analysis kept its spectrum
+    fresh = dataclasses.replace(obs, scaled_eigen=None)  # the covariance decomposed by eigh
+    for fraction in (0.5, 0.01, 1e-4):
+        (got, condition), (want, want_condition) = (_weak_directions(o, fraction, 0.05) for o in (obs, fresh))
+        assert [w.names for w in got] == [w.names for w in want] and len(got) > 0
+        assert np.allclose([w.sigma for w in got], [w.sigma for w in want], rtol=1e-9)
+        assert condition == pytest.approx(want_condition, rel=1e-6)
+    lam, V = obs.scaled_eigen
+    S = obs.scales
+    assert np.allclose((V * lam) @ V.T * np.outer(S, S), obs.covariance, rtol=1e-9, atol=0)
+
+
 # ---- (c) a structural error: the model's box is smaller than the real one ---------------------------
 
 BOXES = """
