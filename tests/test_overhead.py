@@ -319,3 +319,33 @@ def test_the_local_jacobian_of_many_views_matches_finite_differences_of_the_step
         e[j] = h
         fd = (problem.residual(np.asarray(plus(x, e))) - problem.residual(np.asarray(plus(x, -e)))) / (2 * h)
         np.testing.assert_allclose(J[:, j], fd, rtol=1e-5, atol=1e-6 * np.abs(J).max())
+
+
+def test_plots_leave_the_callers_matplotlib_backend_and_pyplot_alone(camera, tmp_path):
+    # A library that plots must not switch its caller's backend (a notebook's inline one) nor
+    # leave figures open in pyplot: the figures are made without pyplot and drawn by Agg.
+    import matplotlib
+    from PIL import Image
+
+    from mbcal.range.manager import Update
+    from mbcal.range.pictures import plot_history
+    from mbcal.render.overlays import residual_plot
+
+    cc = calibrate_cameras(camera, camera_data(camera, 3, seed=5))
+    history = [
+        Update(k, float(k), {"a.x": 0.01 * k}, {"a.x": 0.002}, 1.0, 1.0, 10, 0, True, drift=["a.x"] if k == 2 else [])
+        for k in range(4)
+    ]
+    before = matplotlib.get_backend()
+    matplotlib.use("svg")
+    try:
+        residual_plot(cc.result, tmp_path / "residuals.png")
+        plot_history(history, ["a.x"], tmp_path / "history.png", units={"a.x": "m"})
+        assert matplotlib.get_backend() == "svg"
+    finally:
+        matplotlib.use(before)
+    for name in ("residuals.png", "history.png"):
+        with Image.open(tmp_path / name) as img:
+            assert img.format == "PNG" and img.size[0] > 500
+    if "matplotlib.pyplot" in sys.modules:  # imported by another test of this process: none left open
+        assert sys.modules["matplotlib.pyplot"].get_fignums() == []

@@ -3,7 +3,6 @@ point's distance to the model; the manager's history of estimates with σ bands.
 
 from __future__ import annotations
 
-import io
 import os
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -11,19 +10,13 @@ from typing import Any
 import numpy as np
 
 from mbcal.language.model import Model
-from mbcal.outputs import atomic_write
 from mbcal.range.fit import residuals_at
 from mbcal.range.manager import Update
 from mbcal.range.scans import Scan, depth_camera
 from mbcal.range.simulate import render_depth
+from mbcal.render.views import plot_figure, save_figure
 
 __all__ = ["plot_scan_fit", "plot_history"]
-
-
-def _save(fig, path: str | os.PathLike) -> None:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
-    atomic_write(path, buf.getvalue())
 
 
 def plot_scan_fit(
@@ -37,15 +30,11 @@ def plot_scan_fit(
 ) -> None:
     """Two panels, the depth camera's view at ``before`` and at ``after``: the model's depth in
     grey, the scan's points on it coloured by their distance to the model (mm, clipped)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # optional: pictures load matplotlib when drawn
-
     info = depth_camera(model)
     assert info.intrinsics is not None
     fx, fy, cx, cy = info.intrinsics
-    fig, axes = plt.subplots(1, 2, figsize=(11, 3.6), constrained_layout=True)
+    fig, grid = plot_figure(1, 2, figsize=(11, 3.6), layout="constrained")
+    axes = grid[0]
     image: Any = None
     for ax, values, title in (
         (axes[0], before, "before: model at its nominal values"),
@@ -62,9 +51,8 @@ def plot_scan_fit(
         ax.set_ylim(info.height - 0.5, -0.5)
         ax.set_xticks([])
         ax.set_yticks([])
-    fig.colorbar(image, ax=axes, label="distance to the model (mm)", shrink=0.9)
-    _save(fig, path)
-    plt.close(fig)
+    fig.colorbar(image, ax=list(axes), label="distance to the model (mm)", shrink=0.9)
+    save_figure(fig, path)
 
 
 def plot_history(
@@ -77,13 +65,8 @@ def plot_history(
     units: Mapping[str, str] | None = None,
 ) -> None:
     """Each parameter's estimate per update with ±1σ and ±3σ bands (and the truth, when known)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # optional: pictures load matplotlib when drawn
-
-    fig, axes = plt.subplots(len(names), 1, figsize=(7, 2.2 * len(names)), sharex=True, constrained_layout=True)
-    axes = np.atleast_1d(axes)
+    fig, grid = plot_figure(len(names), 1, figsize=(7, 2.2 * len(names)), layout="constrained", sharex=True)
+    axes = grid[:, 0]
     seq = np.array([u.seq for u in history])
     for ax, name in zip(axes, names):
         k = (scale or {}).get(name, 1.0)
@@ -100,5 +83,4 @@ def plot_history(
                 ax.axvline(u.seq, color="tab:red", lw=0.8)
     axes[0].legend(fontsize=7, ncol=4, loc="upper left")
     axes[-1].set_xlabel("update")
-    _save(fig, path)
-    plt.close(fig)
+    save_figure(fig, path)

@@ -7,15 +7,22 @@ every point as a line from where the model puts it to where it was measured.
 
 from __future__ import annotations
 
-import io
 from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 
 from mbcal._jax import jax
-from mbcal.outputs import atomic_write
-from mbcal.render.views import Layer, draw_overlay, render_view, save_png, shared_context, wireframe_layer
+from mbcal.render.views import (
+    Layer,
+    draw_overlay,
+    plot_figure,
+    render_view,
+    save_figure,
+    save_png,
+    shared_context,
+    wireframe_layer,
+)
 
 __all__ = ["calibration_overlays", "residual_plot", "BEFORE", "AFTER", "MEASURED"]
 
@@ -126,14 +133,9 @@ def calibration_overlays(
 
 def residual_plot(result, path, *, title: str | None = None) -> Path:
     """A PNG of the normalised residuals (worst first) and of the image residual vectors."""
-    import matplotlib  # heavy: loaded only when a plot is made
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # heavy: as above
-
     rows = sorted(result.residuals, key=lambda r: -r.normalized)
     image_rows = [r for r in result.residuals if r.kind == "image_point"]
-    fig, axes = plt.subplots(1, 2 if image_rows else 1, figsize=(11 if image_rows else 6, 4.2), squeeze=False)
+    fig, axes = plot_figure(1, 2 if image_rows else 1, figsize=(11 if image_rows else 6, 4.2))
     ax = axes[0, 0]
     values = np.array([r.normalized for r in rows])
     colors = ["#d62728" if v > result.outlier_threshold else "#1f77b4" for v in values]
@@ -168,8 +170,5 @@ def residual_plot(result, path, *, title: str | None = None) -> Path:
     if title:
         fig.suptitle(title)
     fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
-    plt.close(fig)
-    atomic_write(path, buf.getvalue())
+    save_figure(fig, path)
     return Path(path)

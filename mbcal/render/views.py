@@ -27,7 +27,17 @@ from mbcal.geometry.camera import project_camera_points
 from mbcal.geometry.shapes import get_shape, shape_mesh
 from mbcal.outputs import atomic_write
 
-__all__ = ["RenderError", "View", "render_view", "shared_context", "wireframe_segments", "draw_overlay", "save_png"]
+__all__ = [
+    "RenderError",
+    "View",
+    "render_view",
+    "shared_context",
+    "wireframe_segments",
+    "draw_overlay",
+    "save_png",
+    "plot_figure",
+    "save_figure",
+]
 
 # OpenCV camera axes (x right, y down, z forward) → OpenGL's (x right, y up, z backward).
 _CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -448,6 +458,25 @@ def save_png(image, path) -> None:
         image = Image.fromarray(np.asarray(image, dtype=np.uint8))
     buf = io.BytesIO()
     image.save(buf, format="PNG")
+    atomic_write(path, buf.getvalue())
+
+
+def plot_figure(nrows: int = 1, ncols: int = 1, *, figsize: tuple[float, float], layout: Any = None, **subplots: Any):
+    """(figure, axes (nrows, ncols)): a matplotlib figure drawn by the Agg renderer, made without
+    pyplot — so a plot never switches the caller's backend (a notebook's inline one, say) and
+    leaves nothing in pyplot's list of open figures to close."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg  # heavy: loaded when a plot is made
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=figsize, layout=layout)
+    FigureCanvasAgg(fig)
+    return fig, fig.subplots(nrows, ncols, squeeze=False, **subplots)  # layout: None or "constrained"
+
+
+def save_figure(fig, path, *, dpi: int = 110) -> None:
+    """Write a figure of :func:`plot_figure` as PNG, atomically."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
     atomic_write(path, buf.getvalue())
 
 
