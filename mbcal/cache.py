@@ -1,6 +1,6 @@
 """Caches that make the second run of a problem start fast.
 
-Three caches, all in ``$MBCAL_CACHE_DIR`` (default ``$XDG_CACHE_HOME/mbcal`` or
+Four caches, all in ``$MBCAL_CACHE_DIR`` (default ``$XDG_CACHE_HOME/mbcal`` or
 ``~/.cache/mbcal``); ``MBCAL_CACHE=off`` turns them off:
 
 * JAX's persistent compilation cache (``jax/``): compiled XLA executables, keyed by JAX on the
@@ -13,6 +13,8 @@ Three caches, all in ``$MBCAL_CACHE_DIR`` (default ``$XDG_CACHE_HOME/mbcal`` or
   compilation cache, gets its first result in a fraction of a second.
 * the model language's parser tables (``lark/``, :mod:`mbcal.language.parse`): Lark's LALR
   tables, checked by Lark against a hash of the grammar — every command starts ~0.1 s sooner.
+* the triangles of mesh files (``meshes/``, :mod:`mbcal.language.meshes`): keyed by the file's
+  bytes; a command on a model with meshes does not import trimesh (~0.6 s) to read them again.
 
 This module imports JAX only when a JAX cache is used, so the parser (and ``mbcal check``) can
 use :func:`cache_dir` without loading JAX.

@@ -199,6 +199,57 @@ def test_meshes_load_relative_to_the_model_file_with_scale(write_model, tmp_path
     np.testing.assert_allclose(bounds, [[-0.25, -0.5, -0.75], [0.25, 0.5, 0.75]], atol=1e-9)
 
 
+def test_a_mesh_is_read_with_trimesh_once_then_from_the_cache_folder(write_model, tmp_path, monkeypatch):
+    # import trimesh alone took ~0.6 s of every command on a model with a mesh (issue 16): the
+    # triangles are kept in the cache folder, keyed by the file's bytes.
+    import json
+    import os
+    import subprocess
+    import sys
+
+    import trimesh
+
+    cache = tmp_path / "cache"
+    monkeypatch.setenv("MBCAL_CACHE_DIR", str(cache))
+    monkeypatch.delenv("MBCAL_CACHE", raising=False)
+    part = tmp_path / "part.obj"
+    trimesh.creation.box(extents=(1, 2, 3)).export(part)
+    path = write_model('frame f {\n  shape part = mesh("part.obj")\n}\n')
+    mesh = load_model(path).shapes[0].mesh
+    direct = trimesh.load(str(part), force="mesh", process=False)
+    np.testing.assert_array_equal(mesh.vertices, direct.vertices)
+    np.testing.assert_array_equal(mesh.faces, direct.faces)
+    entries = sorted((cache / "meshes").glob("*.npz"))
+    assert len(entries) == 1
+
+    code = (
+        "import json, sys; from mbcal.language import load_model; "
+        f"mesh = load_model({str(tmp_path / path)!r}).shapes[0].mesh; "
+        "print(json.dumps({'trimesh': 'trimesh' in sys.modules, "
+        "'v': mesh.vertices.tolist(), 'f': mesh.faces.tolist()}))"
+    )
+    env = {**os.environ, "MBCAL_CACHE_DIR": str(cache)}
+    out = json.loads(
+        subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout
+    )
+    assert out["trimesh"] is False  # a second process reads the arrays, without trimesh
+    np.testing.assert_array_equal(out["v"], mesh.vertices)
+    np.testing.assert_array_equal(out["f"], mesh.faces)
+
+    entries[0].write_bytes(b"not an npz file")  # a spoilt entry: the file is read again, the entry rewritten
+    np.testing.assert_array_equal(load_model(path).shapes[0].mesh.vertices, mesh.vertices)
+    assert np.load(entries[0])["faces"].shape == mesh.faces.shape
+
+    trimesh.creation.box(extents=(4, 4, 4)).export(part)  # a changed file is a new entry
+    np.testing.assert_allclose(np.ptp(load_model(path).shapes[0].mesh.vertices, axis=0), [4, 4, 4])
+    assert len(list((cache / "meshes").glob("*.npz"))) == 2
+
+    monkeypatch.setenv("MBCAL_CACHE", "off")  # caching off: read with trimesh, nothing written
+    trimesh.creation.box(extents=(5, 5, 5)).export(part)
+    np.testing.assert_allclose(np.ptp(load_model(path).shapes[0].mesh.vertices, axis=0), [5, 5, 5])
+    assert len(list((cache / "meshes").glob("*.npz"))) == 2
+
+
 def test_range_sensor_directions_are_normalised():
     model = load_model_text(
         "range a(direction = (0, 0, 2))\nrange b(directions = [(1, 0, 0), (0, 3, 4)])\n"

@@ -212,13 +212,17 @@ def test_missing_mesh_file_is_located(write_model):
         (b"solid x\n this is not an stl file at all \x00\x01\x02", "mesh"),
     ],
 )
-def test_empty_or_corrupt_mesh_is_a_mesh_error(content, message, write_model, tmp_path):
+def test_empty_or_corrupt_mesh_is_a_mesh_error(content, message, write_model, tmp_path, monkeypatch):
+    monkeypatch.setenv("MBCAL_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.delenv("MBCAL_CACHE", raising=False)
     (tmp_path / "part.stl").write_bytes(content)
     path = write_model('frame f {\n  shape mesh("part.stl")\n}\n')
-    with pytest.raises(errors.MeshError) as info:
-        load_model(path)
-    assert message in str(info.value)
-    assert str(info.value).startswith("model.mdl:2:14: ")
+    for _ in range(2):  # the second time too: a mesh that failed is never kept in the cache folder
+        with pytest.raises(errors.MeshError) as info:
+            load_model(path)
+        assert message in str(info.value)
+        assert str(info.value).startswith("model.mdl:2:14: ")
+    assert not list(tmp_path.glob("cache/meshes/*"))
 
 
 def test_binary_include_is_an_include_error(write_model, tmp_path):
