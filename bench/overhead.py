@@ -198,7 +198,12 @@ def bench_cli(views: int, demo: bool, repeats: int) -> dict:
     from mbcal.measurements.io import write_measurements
 
     say("command line")
-    out: dict = {}
+    out: dict = {"no_bytecode_env": os.environ.get("PYTHONDONTWRITEBYTECODE", "")}
+    # mbcal's modules as bytecode, as an installed package has them (pip compiles them; an editable
+    # install writes them on its first import unless PYTHONDONTWRITEBYTECODE is set, as on the
+    # machines this project is measured on: then every process compiled mbcal's ~60 modules from
+    # source, ~0.1-0.2 s of each command).  __pycache__ is ignored by git.
+    subprocess.run([sys.executable, "-m", "compileall", "-q", str(ROOT / "mbcal")], check=True)
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         cache = folder / "cache"
@@ -271,6 +276,16 @@ def report(results: dict) -> str:
     lines += [
         "",
         "### The command line (wall time of a fresh process)",
+        "",
+        "mbcal's modules were compiled to bytecode first (`python -m compileall mbcal`), as an "
+        "installed package has them"
+        + (
+            f"; this machine's environment sets `PYTHONDONTWRITEBYTECODE={cli['no_bytecode_env']}`, under "
+            "which a checkout never writes them and every process compiles mbcal's ~60 modules from "
+            "source (measured by hand: ~0.1–0.2 s of each command)."
+            if cli.get("no_bytecode_env")
+            else "."
+        ),
         "",
         "| command | wall (s) | goal |",
         "|---|--:|--:|",
@@ -450,32 +465,40 @@ PROFILE = [
     "  is the kinematic chain recomputed for each coordinate of each point by XLA:CPU's classic",
     "  emitter.",
     "",
-    "What remains:",
+    "- This stop (AMD EPYC, 2 cores; wall times wander by up to 2× within minutes here): a quiet",
+    "  command no longer computes the report it does not print (a calibration's summary reads",
+    "  every point's σ: ~40 ms of `mbcal calibrate-camera --quiet`); the fit verdict takes its",
+    "  weak directions from the observability analysis's SVD instead of a second 87 × 87",
+    "  eigen-decomposition (~0.7 ms of the warm call); a model's mesh files are read with trimesh",
+    "  once and then from the cache folder (`import trimesh` alone was ~0.6 s: a warm `mbcal solve`",
+    "  of the seed's room 2.0 → 1.23 s; not in this table: the camera model has no mesh).  Tried",
+    "  and dropped: drawing the demo's residual plot in a thread beside the rendering (no gain:",
+    "  both hold the GIL most of the time).",
     "",
-    "- The warm call is now ~3.3 ms of solve (10 iterations of the structured loop, each",
-    "  dominated by XLA:CPU's per-kernel cost over the model's 15-column Jacobian of 1,404 rows)",
-    "  and ~6 ms of NumPy and Python around it: the analysis's SVD of the 87 × 87 square-root",
-    "  information (~0.8 ms), Zhang's start (~1 ms), two `ParameterSet`s and the problem",
-    "  (~1 ms), the compressed Jacobian at the solution (~0.5 ms).",
-    "- The first call (2.0 s; the issue's 1 s goal is for the seed's problems, this row holds the",
-    "  camera calibration to it as well): XLA's compile of the structured solver (~1.3 s of CPU",
-    "  in LLVM over 80 modules, no single one above 0.1 s), tracing ~0.5 s; the analysis programs",
-    "  are compiled after the solver, not beside it.",
-    "- The seed's problems (`bench/run.py`): scipy with finite differences (calling mbcal's",
-    "  compiled residual, ~125–135 ms for 64 starts) is now ~54× (room) and ~11× (arm) slower than",
-    "  mbcal, short of the 100× and 36× goals, which are the notes' floor over the notes' scipy",
-    "  (240 and 468 ms there): 64 restarts × 7–8 iterations of r + J cannot fit in the 1.3 ms",
-    "  that 100× would leave, and the hand-written floor itself reaches ~64× / ~5× against the",
-    "  same scipy in the same run.  mbcal is now within 1× of the notes' floor for both (2.3 vs",
-    "  2.4 ms, 12.6 vs 13.0 ms).",
-    "- A warm `mbcal calibrate-camera` is ~0.6 s of imports (JAX 0.27 s, SciPy 0.15 s: jaxlib",
-    "  loads `scipy.linalg` for its LAPACK pointers when a program uses LAPACK, `mbcal.fit` loads",
-    "  `scipy.special`, `mbcal.workflows.cameras` `scipy.ndimage`; mbcal's own modules ~0.1 s) and",
-    "  ~0.55 s of work: loading the structured solver's executable from the compilation cache",
-    "  (~0.25 s: XLA rebuilds its 2 MB HLO module, in proportion to the program's size), tracing",
-    "  `structured.compressed_jacobian` again in every process (~0.15 s: it is not exported like",
-    "  the solver), Zhang's start running the modeler op by op (6 small compiles, ~0.1 s), and",
-    "  reading the 702 corners (~0.05 s).",
+    "What remains (measured this stop, by hand):",
+    "",
+    "- The warm call, ~16–18 ms when called back to back: the structured solve is ~3.7 ms run",
+    "  alone back to back but ~6 ms inside the call — the same program after ~10 ms of Python",
+    "  work (a 10 ms sleep before it: 3.6 → 6.1 ms, with XLA on one thread too: the processor's",
+    "  caches and clocks, not XLA's threads); ~10 ms of NumPy and Python around it: the problem",
+    "  and its two `ParameterSet`s (~3 ms), Zhang's start (~2 ms), the analysis's SVD of the",
+    "  87 × 87 square-root information (~1.8 ms inside the call, 0.9 ms alone), the compressed",
+    "  Jacobian at the solution (~0.75 ms of XLA), the fit verdict (~0.5 ms).",
+    "- A warm `mbcal calibrate-camera`, 1.2–1.4 s here: imports ~0.65 s (JAX alone 0.55–0.75 s",
+    "  on this machine, 0.27 s on the Intel one), jaxlib's LAPACK set-up, which imports",
+    "  `scipy.linalg` when the first exported program is lowered (~0.15 s), the structured",
+    "  solver's executable read from the compilation cache (~0.17 s), the model and the 702",
+    "  corners (~0.15 s).",
+    "- `mbcal demo`, 4.0–4.5 s warm here: ~1.9 s of imports (JAX, trimesh 0.66 s — pyrender",
+    "  imports it —, pyrender 0.33 s, matplotlib 0.35 s), rendering and overlays ~1.5 s, the",
+    "  residual plot ~0.6 s.",
+    "- The seed's problems (`bench/run.py`): the arm's warm solve is bound by XLA:CPU's classic",
+    "  emitter recomputing the kinematic chain for every coordinate of the hand points.  XLA's",
+    "  newer fusion emitters avoid that (measured again this stop, fresh processes: arm",
+    "  18.6–23.7 → 9.4–11.2 ms warm, first call +0.5–0.7 s; the room 2.5–3.3 → 4.0–4.5 ms,",
+    "  slower): a tiered compile — the classic program first, the other compiled in the",
+    "  background and kept where it runs faster — would take the arm's gain without the first",
+    "  call's cost; not built.",
 ]
 
 
