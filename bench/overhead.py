@@ -498,7 +498,8 @@ PROFILE = [
     "  18.6–23.7 → 9.4–11.2 ms warm, first call +0.5–0.7 s; the room 2.5–3.3 → 4.0–4.5 ms,",
     "  slower): a tiered compile — the classic program first, the other compiled in the",
     "  background and kept where it runs faster — would take the arm's gain without the first",
-    "  call's cost; not built.",
+    "  call's cost; not built: which program answers a call would depend on timing, and the two",
+    "  round differently (bench/run.py's notes).",
 ]
 
 

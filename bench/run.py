@@ -699,7 +699,15 @@ ARM_PROFILE = (
     "and cosines (to have them computed once per attitude, not in every coordinate's kernel): "
     "~17 % faster in an in-process A/B, but XLA:CPU drops the barriers before it fuses and the "
     "kernels stayed as they were, so the gain is not understood and was not kept; around the "
-    "chain's end transform: no change."
+    "chain's end transform: no change.  Measured again on the AMD machine (fresh processes, no "
+    "cache, the arm's warm solve and first call): the joints' sines and cosines kept in memory "
+    "through a loop XLA cannot remove (trip count 1 + any(q ≠ q)), one per joint: 19 → 14 ms warm "
+    "but the first call 1.2–1.5 → 2.6–2.9 s; all joints in one loop: 22 ms and +0.45 s; the frame's "
+    "end transform through such a loop: 32 ms.  XLA's newer fusion emitters: 18.6–23.7 → "
+    "9.4–11.2 ms warm, first call +0.5–0.7 s, the room 2.5–3.3 → 4.0–4.5 ms.  A tiered compile "
+    "(the classic program first, the other in the background, the faster kept) was not built: "
+    "which program answers a call would then depend on timing, and the two round differently "
+    "(the arm's slowest restart 11 or 9 iterations), so a script run twice could differ."
 )
 
 
