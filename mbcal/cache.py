@@ -14,7 +14,8 @@ Four caches, all in ``$MBCAL_CACHE_DIR`` (default ``$XDG_CACHE_HOME/mbcal`` or
 * the model language's parser tables (``lark/``, :mod:`mbcal.language.parse`): Lark's LALR
   tables, checked by Lark against a hash of the grammar — every command starts ~0.1 s sooner.
 * the triangles of mesh files (``meshes/``, :mod:`mbcal.language.meshes`): keyed by the file's
-  bytes; a command on a model with meshes does not import trimesh (~0.6 s) to read them again.
+  bytes, its format and trimesh's version; a command on a model with meshes does not import
+  trimesh (~0.6 s) to read them again (every format but ``.gltf``, whose buffers are other files).
 
 This module imports JAX only when a JAX cache is used, so the parser (and ``mbcal check``) can
 use :func:`cache_dir` without loading JAX.

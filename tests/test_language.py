@@ -244,10 +244,37 @@ def test_a_mesh_is_read_with_trimesh_once_then_from_the_cache_folder(write_model
     np.testing.assert_allclose(np.ptp(load_model(path).shapes[0].mesh.vertices, axis=0), [4, 4, 4])
     assert len(list((cache / "meshes").glob("*.npz"))) == 2
 
+    from mbcal.language import meshes
+
+    reader = meshes._reader
+    monkeypatch.setattr(meshes, "_reader", lambda: "trimesh 99.0")  # another trimesh: a new entry
+    np.testing.assert_allclose(np.ptp(load_model(path).shapes[0].mesh.vertices, axis=0), [4, 4, 4])
+    assert len(list((cache / "meshes").glob("*.npz"))) == 3
+    monkeypatch.setattr(meshes, "_reader", reader)
+
+    read = meshes._read_with_trimesh
+
+    def saved_again_meanwhile(path, span):  # an editor saves the file while trimesh reads it
+        got = read(path, span)
+        trimesh.creation.box(extents=(6, 6, 6)).export(part)
+        return got
+
+    trimesh.creation.box(extents=(3, 3, 3)).export(part)
+    monkeypatch.setattr(meshes, "_read_with_trimesh", saved_again_meanwhile)
+    load_model(path)
+    assert len(list((cache / "meshes").glob("*.npz"))) == 3  # not kept under the old content's key
+    monkeypatch.setattr(meshes, "_read_with_trimesh", read)
+    np.testing.assert_allclose(np.ptp(load_model(path).shapes[0].mesh.vertices, axis=0), [6, 6, 6])
+    assert len(list((cache / "meshes").glob("*.npz"))) == 4
+
+    gltf = tmp_path / "part.gltf"  # a .gltf's vertices are in a buffer file of their own: never kept
+    gltf.write_bytes(trimesh.creation.box(extents=(1, 1, 1)).export(file_type="gltf")["model.gltf"])
+    assert meshes._entry(gltf, ".gltf") is None and meshes._entry(part, ".obj") is not None
+
     monkeypatch.setenv("MBCAL_CACHE", "off")  # caching off: read with trimesh, nothing written
     trimesh.creation.box(extents=(5, 5, 5)).export(part)
     np.testing.assert_allclose(np.ptp(load_model(path).shapes[0].mesh.vertices, axis=0), [5, 5, 5])
-    assert len(list((cache / "meshes").glob("*.npz"))) == 2
+    assert len(list((cache / "meshes").glob("*.npz"))) == 4
 
 
 def test_range_sensor_directions_are_normalised():

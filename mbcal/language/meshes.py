@@ -4,12 +4,16 @@ The triangles read from a file are kept in the cache folder (``meshes/`` of
 :func:`mbcal.cache.cache_dir`), keyed by the file's bytes, its format and the installed trimesh:
 ``import trimesh`` alone takes ~0.6 s (it loads SciPy's spatial and optimisation modules and
 networkx), a third of a warm ``mbcal solve`` of the seed's room, while the arrays load in a
-millisecond (issue 16).  A changed file is a new key; an unreadable entry is read again with trimesh.
+millisecond (issue 16).  A changed file is a new key; an unreadable entry is read again with
+trimesh.  Only formats whose triangles are all in the one file are kept (:data:`CACHED_SUFFIXES`:
+a ``.gltf`` keeps its vertices in separate buffer files, which the key would not see), and an
+entry is written only when the file was not changed while trimesh read it.
 """
 
 from __future__ import annotations
 
 import functools
+import importlib.metadata
 import importlib.util
 import io
 import os
@@ -27,6 +31,10 @@ __all__ = ["load_mesh", "MESH_SUFFIXES"]
 # The formats trimesh reads that carry triangles.
 MESH_SUFFIXES = (".stl", ".obj", ".ply", ".glb", ".gltf", ".off", ".dae")
 
+# The formats whose triangles the cache folder keeps: every one but .gltf, whose buffers are files
+# of their own.  (An .obj's materials file holds no geometry.)
+CACHED_SUFFIXES = (".stl", ".obj", ".ply", ".glb", ".off", ".dae")
+
 # Bump when what is stored changes (the arrays, their dtypes, the reading options).
 _ENTRY_VERSION = 1
 
@@ -41,7 +49,8 @@ def load_mesh(path: Path, span: SourceSpan | None) -> MeshData:
         raise MeshError(f"mesh file not found: {path}", span, hint="mesh paths are relative to the model file")
     if path.stat().st_size == 0:
         raise MeshError(f"mesh file is empty: {path}", span)
-    entry = _entry(path, suffix)
+    key = _entry(path, suffix)
+    entry, content = key if key is not None else (None, b"")
     arrays = _read_entry(entry) if entry is not None else None
     if arrays is None:
         vertices, faces = _read_with_trimesh(path, span)
@@ -53,7 +62,7 @@ def load_mesh(path: Path, span: SourceSpan | None) -> MeshData:
         raise MeshError(f"mesh {path} has invalid vertices", span)
     if faces.min() < 0 or faces.max() >= len(vertices):
         raise MeshError(f"mesh {path} has faces that refer to missing vertices", span)
-    if arrays is None and entry is not None:  # only a valid mesh is kept
+    if arrays is None and entry is not None and _unchanged(path, content):  # only a valid mesh is kept
         _write_entry(entry, vertices, faces)
     return MeshData(str(path), vertices, faces)
 
@@ -72,26 +81,41 @@ def _read_with_trimesh(path: Path, span: SourceSpan | None) -> tuple[np.ndarray,
 
 @functools.lru_cache(maxsize=1)
 def _reader() -> str:
-    """Which trimesh would read the files: its location and its ``__init__.py``'s size and time (an
-    upgrade rewrites it), found without importing it."""
+    """Which trimesh would read the files, found without importing it: its version (from the
+    installed package's metadata) and its ``__init__.py``'s location, size and time (an editable
+    checkout changed in place)."""
     spec = importlib.util.find_spec("trimesh")
     if spec is None or spec.origin is None:
         return "no trimesh"
+    try:
+        version = importlib.metadata.version("trimesh")
+    except importlib.metadata.PackageNotFoundError:
+        version = "unknown"
     st = os.stat(spec.origin)
-    return f"{spec.origin}:{st.st_size}:{st.st_mtime_ns}"
+    return f"{version}:{spec.origin}:{st.st_size}:{st.st_mtime_ns}"
 
 
-def _entry(path: Path, suffix: str) -> Path | None:
-    """The cache file for this mesh file's content, or None when caching is off."""
+def _entry(path: Path, suffix: str) -> tuple[Path, bytes] | None:
+    """The cache file for this mesh file's content and the content itself, or None when caching is
+    off or the format is not kept (:data:`CACHED_SUFFIXES`)."""
     folder = cache_dir()
-    if folder is None:
+    if folder is None or suffix not in CACHED_SUFFIXES:
         return None
     try:
         content = path.read_bytes()
     except OSError:
         return None  # trimesh will say what is wrong with it
     key = Hasher().add("mesh", _ENTRY_VERSION, suffix, _reader(), content).hexdigest()
-    return folder / "meshes" / f"{key}.npz"
+    return folder / "meshes" / f"{key}.npz", content
+
+
+def _unchanged(path: Path, content: bytes) -> bool:
+    """Whether the file still holds ``content`` (it may have been saved again while trimesh read it:
+    its triangles must not be kept under the old content's key)."""
+    try:
+        return path.read_bytes() == content
+    except OSError:
+        return False
 
 
 def _read_entry(entry: Path) -> tuple[np.ndarray, np.ndarray] | None:
