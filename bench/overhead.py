@@ -203,7 +203,8 @@ def bench_cli(views: int, demo: bool, repeats: int) -> dict:
     # install writes them on its first import unless PYTHONDONTWRITEBYTECODE is set, as on the
     # machines this project is measured on: then every process compiled mbcal's ~60 modules from
     # source, ~0.1-0.2 s of each command).  __pycache__ is ignored by git.
-    subprocess.run([sys.executable, "-m", "compileall", "-q", str(ROOT / "mbcal")], check=True)
+    compiled = subprocess.run([sys.executable, "-m", "compileall", "-q", str(ROOT / "mbcal")], capture_output=True)
+    out["bytecode"] = compiled.returncode == 0  # a read-only checkout: measured without it, and said so
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         cache = folder / "cache"
@@ -277,8 +278,13 @@ def report(results: dict) -> str:
         "",
         "### The command line (wall time of a fresh process)",
         "",
-        "mbcal's modules were compiled to bytecode first (`python -m compileall mbcal`), as an "
-        "installed package has them"
+        (
+            "mbcal's modules were compiled to bytecode first (`python -m compileall mbcal`), as an "
+            "installed package has them"
+            if cli.get("bytecode", True)
+            else "mbcal's modules could not be compiled to bytecode here (`python -m compileall mbcal` "
+            "failed: a read-only checkout?), so these rows include compiling them from source"
+        )
         + (
             f"; this machine's environment sets `PYTHONDONTWRITEBYTECODE={cli['no_bytecode_env']}`, under "
             "which a checkout never writes them and every process compiles mbcal's ~60 modules from "
