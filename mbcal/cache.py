@@ -17,6 +17,10 @@ Four caches, all in ``$MBCAL_CACHE_DIR`` (default ``$XDG_CACHE_HOME/mbcal`` or
   bytes, its format and trimesh's version; a command on a model with meshes does not import
   trimesh (~0.6 s) to read them again (every format but ``.gltf``, whose buffers are other files).
 
+``mbcal cache`` shows what each holds (:func:`cache_contents`) and ``mbcal cache --clear`` removes
+it (:func:`clear_cache`; only files with the names these caches give them).  Nothing is evicted
+on its own: the folder grows with every new problem structure and JAX program.
+
 This module imports JAX only when a JAX cache is used, so the parser (and ``mbcal check``) can
 use :func:`cache_dir` without loading JAX.
 
@@ -29,9 +33,10 @@ from __future__ import annotations
 import functools
 import hashlib
 import os
+import re
 import threading
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +47,9 @@ from mbcal.resources import find_bundled, package_root
 
 __all__ = [
     "cache_dir",
+    "cache_contents",
+    "clear_cache",
+    "CACHE_PARTS",
     "enable_compilation_cache",
     "exported",
     "code_fingerprint",
@@ -105,6 +113,83 @@ def cache_dir() -> Path | None:
         return Path(os.environ["MBCAL_CACHE_DIR"])
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     return Path(base) / "mbcal"
+
+
+# The parts of the cache folder: what each holds and the names of the files written there (by
+# mbcal, by JAX's compilation cache, by Lark for mbcal's grammar), with the leftovers of an
+# interrupted atomic write (mbcal.outputs.atomic_write: ".NAME.XXXX.part").  `mbcal cache --clear`
+# removes files with these names only: MBCAL_CACHE_DIR may name a folder that holds other files.
+CACHE_PARTS: dict[str, tuple[str, str]] = {
+    "exports": ("traced programs (jax.export): a later process does not trace them", r"[0-9a-f]{64}\.jaxexport"),
+    "jax": ("compiled programs (JAX's compilation cache)", r"[A-Za-z0-9_.\-]+-[0-9a-f]{64}-(?:cache|atime)"),
+    "meshes": ("triangles of mesh files, keyed by their bytes", r"[0-9a-f]{64}\.npz"),
+    "lark": ("the model language's parser tables", r"mdl-grammar\.lark"),
+}
+
+
+def _cache_files(folder: Path, part: str) -> list[Path]:
+    """The files of one part of the cache folder that carry its names (nothing else)."""
+    name = re.compile(CACHE_PARTS[part][1])
+    leftover = re.compile(r"\.(?:" + CACHE_PARTS[part][1] + r")\.[^/]+\.part")
+    where = folder / part
+    if not where.is_dir():
+        return []
+    return sorted(
+        p
+        for p in where.iterdir()
+        if p.is_file() and not p.is_symlink() and (name.fullmatch(p.name) or leftover.fullmatch(p.name))
+    )
+
+
+def cache_contents(folder: Path | None = None) -> list[dict[str, Any]]:
+    """Each part of the cache folder (``folder``, default :func:`cache_dir`): its name, what it
+    holds, its folder, the number of files and their size in bytes; empty when caching is off."""
+    folder = cache_dir() if folder is None else folder
+    if folder is None:
+        return []
+    out = []
+    for part, (what, _) in CACHE_PARTS.items():
+        files = _cache_files(folder, part)
+        out.append(
+            {
+                "part": part,
+                "holds": what,
+                "folder": str(folder / part),
+                "files": len(files),
+                "bytes": sum(_size(p) for p in files),
+            }
+        )
+    return out
+
+
+def clear_cache(folder: Path | None = None, parts: Sequence[str] | None = None) -> tuple[int, int]:
+    """Remove the cached files (of ``parts``, default all) from the cache folder: (files, bytes)
+    removed.  Only files with the names mbcal's caches give them are touched, and the folders
+    stay (a process running beside it writes its next entries there): it loses nothing but
+    speed, each cache is rebuilt on its next miss."""
+    folder = cache_dir() if folder is None else folder
+    if folder is None:
+        return 0, 0
+    unknown = [p for p in (parts or ()) if p not in CACHE_PARTS]
+    if unknown:
+        raise ValueError(f"no cache part named {unknown[0]!r} (parts: {', '.join(CACHE_PARTS)})")
+    count = total = 0
+    for part in parts or CACHE_PARTS:
+        for path in _cache_files(folder, part):
+            size = _size(path)
+            try:
+                path.unlink()
+            except FileNotFoundError:
+                continue  # removed by another process meanwhile
+            count, total = count + 1, total + size
+    return count, total
+
+
+def _size(path: Path) -> int:
+    try:
+        return path.stat().st_size
+    except OSError:
+        return 0
 
 
 @functools.lru_cache(maxsize=1)

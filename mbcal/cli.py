@@ -32,8 +32,10 @@ if "numpy" not in sys.modules:
 import numpy as np  # noqa: E402
 
 from mbcal import __version__  # noqa: E402
+from mbcal.cache import CACHE_PARTS, cache_contents, cache_dir, clear_cache  # noqa: E402
 from mbcal.errors import MbcalError  # noqa: E402
 from mbcal.outputs import INTERRUPTED, atomic_write, check_output, check_output_folder  # noqa: E402
+from mbcal.text import table  # noqa: E402
 from mbcal.units import LENGTH, UNITS, describe, to_display  # noqa: E402
 
 __all__ = ["main", "build_parser"]
@@ -75,6 +77,46 @@ def cmd_check(args: argparse.Namespace) -> int:
     if args.quiet:
         return EXIT_OK
     print(f"\nok: {len(args.models)} model{'s' if len(args.models) != 1 else ''} checked")
+    return EXIT_OK
+
+
+# ---- cache ------------------------------------------------------------------------------------
+
+
+def _bytes_text(n: int) -> str:
+    for unit, size in (("GB", 2**30), ("MB", 2**20), ("kB", 2**10)):
+        if n >= size:
+            return f"{n / size:.1f} {unit}"
+    return f"{n} B"
+
+
+def cmd_cache(args: argparse.Namespace) -> int:
+    folder = cache_dir()
+    removed = None
+    if folder is not None and args.clear is not None:
+        removed = clear_cache(folder, args.clear or None)
+    parts = cache_contents(folder)
+    if args.json:
+        report: dict[str, Any] = {"folder": None if folder is None else str(folder), "parts": parts}
+        if removed is not None:
+            report["removed"] = {"files": removed[0], "bytes": removed[1]}
+        _write_json(report, args.json, [])
+
+    def text() -> str:
+        if folder is None:
+            return "caching is off (MBCAL_CACHE=off): nothing is kept between runs"
+        lines = []
+        if removed is not None:
+            which = ", ".join(args.clear) if args.clear else "every part"
+            lines += [f"removed {removed[0]} files ({_bytes_text(removed[1])}) of {which}", ""]
+        rows = [[p["part"], p["files"], _bytes_text(p["bytes"]), CACHE_PARTS[p["part"]][0]] for p in parts]
+        total = sum(p["bytes"] for p in parts)
+        rows.append(["total", sum(p["files"] for p in parts), _bytes_text(total), ""])
+        title = f"mbcal's cache folder: {folder} ($MBCAL_CACHE_DIR; MBCAL_CACHE=off turns it off)"
+        lines.append(table(["part", "files", "size", "holds"], rows, align="lrrl", title=title))
+        return "\n".join(lines)
+
+    _say(args, text)
     return EXIT_OK
 
 
@@ -1306,6 +1348,30 @@ def build_parser() -> argparse.ArgumentParser:
     _set_option(p, "parameter value, with a unit if wanted (lever.angle=45deg); repeatable")
     p.add_argument("--points", action="store_true", help="mark every named point with a small sphere")
     _quiet_option(p, "print nothing on success")
+
+    p = _add(
+        sub,
+        "cache",
+        "show what mbcal keeps in its cache folder, or clear it",
+        """
+        mbcal keeps traced and compiled programs, the triangles of mesh files and its parser's
+        tables in $MBCAL_CACHE_DIR (default ~/.cache/mbcal; MBCAL_CACHE=off turns caching off),
+        so that the second run of a problem starts at once.  Nothing is evicted on its own: this
+        shows how many files each part holds and their size, and --clear removes them (only
+        files with the names mbcal's caches give them; a later run rebuilds what it needs).
+        """,
+        "mbcal cache --clear exports jax",
+        cmd_cache,
+    )
+    p.add_argument(
+        "--clear",
+        nargs="*",
+        metavar="PART",
+        choices=list(CACHE_PARTS),
+        help=f"remove the cached files of these parts ({', '.join(CACHE_PARTS)}; none named: all)",
+    )
+    _json_option(p, "the folder and its parts as JSON")
+    _quiet_option(p, "print nothing")
 
     _register_commands(sub)
     return parser

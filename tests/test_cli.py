@@ -240,6 +240,7 @@ def test_demo_runs_the_seeds_room_calibration_end_to_end(tmp_path):
         "calibrate-camera",
         "convert",
         "studio",
+        "cache",
     ],
 )
 def test_every_command_has_help_with_an_example(command):

@@ -88,3 +88,52 @@ def test_check_and_help_do_not_import_jax():
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
+
+
+def test_cache_shows_each_part_and_clears_only_the_files_mbcal_wrote(tmp_path, monkeypatch):
+    # The cache folder grows with every problem structure and program (nothing is evicted):
+    # `mbcal cache` says what it holds, --clear empties it — and never touches a file it did not
+    # write, since MBCAL_CACHE_DIR may name a folder of the user's.
+    import json
+
+    from mbcal.cli import main
+
+    cache = tmp_path / "cache"
+    files = {
+        "exports": ["a" * 64 + ".jaxexport", "b" * 64 + ".jaxexport", "." + "c" * 64 + ".jaxexport.x1y2.part"],
+        "jax": ["jit_call-" + "d" * 64 + "-cache", "jit_scatter-add-" + "e" * 64 + "-cache"],
+        "meshes": ["f" * 64 + ".npz"],
+        "lark": ["mdl-grammar.lark"],
+    }
+    for part, names in files.items():
+        (cache / part).mkdir(parents=True)
+        for k, name in enumerate(names):
+            (cache / part / name).write_bytes(b"x" * (100 + k))
+    mine = [cache / "exports" / "notes.txt", cache / "jax" / "jit_call-short-cache", cache / "my.jaxexport"]
+    for path in mine:
+        path.write_text("the user's")
+    monkeypatch.setenv("MBCAL_CACHE_DIR", str(cache))
+    monkeypatch.delenv("MBCAL_CACHE", raising=False)
+
+    result = run("cache")
+    assert result.returncode == 0, result.stderr
+    lines = {line.split()[0]: line.split() for line in result.stdout.splitlines()[3:]}
+    assert lines["exports"][1:3] == ["3", "303"] and lines["jax"][1:3] == ["2", "201"]
+    assert lines["meshes"][1] == lines["lark"][1] == "1" and lines["total"][1] == "7"
+    assert str(cache) in result.stdout
+
+    report = tmp_path / "cache.json"
+    assert main(["cache", "--clear", "exports", "meshes", "--json", str(report), "-q"]) == 0
+    data = json.loads(report.read_text())
+    assert data["removed"] == {"files": 4, "bytes": 100 + 101 + 102 + 100}
+    assert {p["part"]: p["files"] for p in data["parts"]} == {"exports": 0, "jax": 2, "meshes": 0, "lark": 1}
+    assert main(["cache", "--clear", "-q"]) == 0
+    assert sorted(p.name for p in cache.rglob("*") if p.is_file()) == sorted(p.name for p in mine)
+    assert all(p.read_text() == "the user's" for p in mine)
+
+    bad = run("cache", "--clear", "everything")
+    assert bad.returncode == 2 and "invalid choice" in bad.stderr
+    monkeypatch.setenv("MBCAL_CACHE", "off")
+    off = run("cache", "--clear")
+    assert off.returncode == 0 and "caching is off" in off.stdout
+    assert all(p.exists() for p in mine)

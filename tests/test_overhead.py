@@ -191,7 +191,7 @@ def test_one_chi2_tail_in_plain_python_equals_scipys():
     np.testing.assert_array_equal(stats.chi2.sf(np.array([1.0, 50.0]), 3), special.chdtrc(3, [1.0, 50.0]))
 
 
-@pytest.mark.parametrize("argv", [["--help"], ["check", "models/camera_calibration.mdl"]])
+@pytest.mark.parametrize("argv", [["--help"], ["check", "models/camera_calibration.mdl"], ["cache"]])
 def test_the_cli_starts_without_heavy_libraries(argv):
     code = (
         "import json, sys\n"
