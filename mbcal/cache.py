@@ -37,6 +37,7 @@ import re
 import threading
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -49,6 +50,7 @@ __all__ = [
     "cache_dir",
     "cache_contents",
     "clear_cache",
+    "Cleared",
     "CACHE_PARTS",
     "enable_compilation_cache",
     "exported",
@@ -121,7 +123,8 @@ def cache_dir() -> Path | None:
 # removes files with these names only: MBCAL_CACHE_DIR may name a folder that holds other files.
 CACHE_PARTS: dict[str, tuple[str, str]] = {
     "exports": ("traced programs (jax.export): a later process does not trace them", r"[0-9a-f]{64}\.jaxexport"),
-    "jax": ("compiled programs (JAX's compilation cache)", r"[A-Za-z0-9_.\-]+-[0-9a-f]{64}-(?:cache|atime)"),
+    # JAX names its entries "<module name>-<sha256>-cache", the module name with [^\w.-] replaced
+    "jax": ("compiled programs (JAX's compilation cache)", r"[\w.\-]+-[0-9a-f]{64}-(?:cache|atime)"),
     "meshes": ("triangles of mesh files, keyed by their bytes", r"[0-9a-f]{64}\.npz"),
     "lark": ("the model language's parser tables", r"mdl-grammar\.lark"),
 }
@@ -143,46 +146,64 @@ def _cache_files(folder: Path, part: str) -> list[Path]:
 
 def cache_contents(folder: Path | None = None) -> list[dict[str, Any]]:
     """Each part of the cache folder (``folder``, default :func:`cache_dir`): its name, what it
-    holds, its folder, the number of files and their size in bytes; empty when caching is off."""
+    holds, its folder, the number of files and their size in bytes, and ``error`` (the reason)
+    for a part that could not be read; empty when caching is off."""
     folder = cache_dir() if folder is None else folder
     if folder is None:
         return []
     out = []
     for part, (what, _) in CACHE_PARTS.items():
-        files = _cache_files(folder, part)
-        out.append(
-            {
-                "part": part,
-                "holds": what,
-                "folder": str(folder / part),
-                "files": len(files),
-                "bytes": sum(_size(p) for p in files),
-            }
-        )
+        entry: dict[str, Any] = {"part": part, "holds": what, "folder": str(folder / part), "files": 0, "bytes": 0}
+        try:
+            files = _cache_files(folder, part)
+        except OSError as err:  # an unreadable folder: said, and the other parts still shown
+            entry["error"] = f"{type(err).__name__}: {err.strerror or err}"
+        else:
+            entry.update(files=len(files), bytes=sum(_size(p) for p in files))
+        out.append(entry)
     return out
 
 
-def clear_cache(folder: Path | None = None, parts: Sequence[str] | None = None) -> tuple[int, int]:
-    """Remove the cached files (of ``parts``, default all) from the cache folder: (files, bytes)
-    removed.  Only files with the names mbcal's caches give them are touched, and the folders
-    stay (a process running beside it writes its next entries there): it loses nothing but
-    speed, each cache is rebuilt on its next miss."""
+@dataclass(frozen=True)
+class Cleared:
+    """What :func:`clear_cache` removed, and what it could not (``problems``: one line each)."""
+
+    files: int
+    bytes: int
+    problems: tuple[str, ...] = ()
+
+
+def clear_cache(folder: Path | None = None, parts: Sequence[str] | None = None) -> Cleared:
+    """Remove the cached files (of ``parts``, default all) from the cache folder.  Only files with
+    the names mbcal's caches give them are touched, and the folders stay (a process running
+    beside it writes its next entries there): it loses nothing but speed, each cache is rebuilt
+    on its next miss.  A file or folder that cannot be removed or read is listed in
+    ``problems`` and the rest are removed."""
     folder = cache_dir() if folder is None else folder
     if folder is None:
-        return 0, 0
+        return Cleared(0, 0)
     unknown = [p for p in (parts or ()) if p not in CACHE_PARTS]
     if unknown:
         raise ValueError(f"no cache part named {unknown[0]!r} (parts: {', '.join(CACHE_PARTS)})")
     count = total = 0
+    problems: list[str] = []
     for part in parts or CACHE_PARTS:
-        for path in _cache_files(folder, part):
+        try:
+            files = _cache_files(folder, part)
+        except OSError as err:
+            problems.append(f"{folder / part}: {err.strerror or err}")
+            continue
+        for path in files:
             size = _size(path)
             try:
                 path.unlink()
             except FileNotFoundError:
                 continue  # removed by another process meanwhile
+            except OSError as err:
+                problems.append(f"{path}: {err.strerror or err}")
+                continue
             count, total = count + 1, total + size
-    return count, total
+    return Cleared(count, total, tuple(problems))
 
 
 def _size(path: Path) -> int:

@@ -92,24 +92,28 @@ def _bytes_text(n: int) -> str:
 
 def cmd_cache(args: argparse.Namespace) -> int:
     folder = cache_dir()
-    removed = None
-    if folder is not None and args.clear is not None:
-        removed = clear_cache(folder, args.clear or None)
+    removed = clear_cache(folder, args.clear or None) if folder is not None and args.clear is not None else None
     parts = cache_contents(folder)
+    problems = [f"{p['folder']}: {p['error']}" for p in parts if "error" in p]
+    problems += [] if removed is None else list(removed.problems)
     if args.json:
         report: dict[str, Any] = {"folder": None if folder is None else str(folder), "parts": parts}
         if removed is not None:
-            report["removed"] = {"files": removed[0], "bytes": removed[1]}
+            report["removed"] = {"files": removed.files, "bytes": removed.bytes, "problems": list(removed.problems)}
         _write_json(report, args.json, [])
 
     def text() -> str:
         if folder is None:
-            return "caching is off (MBCAL_CACHE=off): nothing is kept between runs"
+            return (
+                "caching is off (MBCAL_CACHE=off): nothing is kept between runs, nothing to show or clear "
+                "(without it the folder is $MBCAL_CACHE_DIR, default ~/.cache/mbcal)"
+            )
         lines = []
         if removed is not None:
             which = ", ".join(args.clear) if args.clear else "every part"
-            lines += [f"removed {removed[0]} files ({_bytes_text(removed[1])}) of {which}", ""]
-        rows = [[p["part"], p["files"], _bytes_text(p["bytes"]), CACHE_PARTS[p["part"]][0]] for p in parts]
+            lines += [f"removed {removed.files} files ({_bytes_text(removed.bytes)}) of {which}", ""]
+        holds = [f"unreadable ({p['error']})" if "error" in p else p["holds"] for p in parts]
+        rows = [[p["part"], p["files"], _bytes_text(p["bytes"]), h] for p, h in zip(parts, holds)]
         total = sum(p["bytes"] for p in parts)
         rows.append(["total", sum(p["files"] for p in parts), _bytes_text(total), ""])
         title = f"mbcal's cache folder: {folder} ($MBCAL_CACHE_DIR; MBCAL_CACHE=off turns it off)"
@@ -117,7 +121,9 @@ def cmd_cache(args: argparse.Namespace) -> int:
         return "\n".join(lines)
 
     _say(args, text)
-    return EXIT_OK
+    for problem in problems:  # said even with --quiet: something was not done
+        print(f"mbcal cache: {problem}", file=sys.stderr)
+    return EXIT_BAD_INPUT if problems else EXIT_OK
 
 
 # ---- scene ------------------------------------------------------------------------------------

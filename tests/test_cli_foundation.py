@@ -101,7 +101,11 @@ def test_cache_shows_each_part_and_clears_only_the_files_mbcal_wrote(tmp_path, m
     cache = tmp_path / "cache"
     files = {
         "exports": ["a" * 64 + ".jaxexport", "b" * 64 + ".jaxexport", "." + "c" * 64 + ".jaxexport.x1y2.part"],
-        "jax": ["jit_call-" + "d" * 64 + "-cache", "jit_scatter-add-" + "e" * 64 + "-cache"],
+        "jax": [
+            "jit_call-" + "d" * 64 + "-cache",
+            "jit_scatter-add-" + "e" * 64 + "-cache",
+            "jit_größe-" + "0" * 64 + "-atime",
+        ],
         "meshes": ["f" * 64 + ".npz"],
         "lark": ["mdl-grammar.lark"],
     }
@@ -109,31 +113,55 @@ def test_cache_shows_each_part_and_clears_only_the_files_mbcal_wrote(tmp_path, m
         (cache / part).mkdir(parents=True)
         for k, name in enumerate(names):
             (cache / part / name).write_bytes(b"x" * (100 + k))
+    users = tmp_path / "users.txt"
+    users.write_text("the user's")
     mine = [cache / "exports" / "notes.txt", cache / "jax" / "jit_call-short-cache", cache / "my.jaxexport"]
     for path in mine:
         path.write_text("the user's")
+    (cache / "meshes" / ("9" * 64 + ".npz")).symlink_to(users)  # named like an entry: a link, kept
+    (cache / "exports" / ("8" * 64 + ".jaxexport")).mkdir()  # a folder named like an entry: kept
     monkeypatch.setenv("MBCAL_CACHE_DIR", str(cache))
     monkeypatch.delenv("MBCAL_CACHE", raising=False)
 
     result = run("cache")
     assert result.returncode == 0, result.stderr
     lines = {line.split()[0]: line.split() for line in result.stdout.splitlines()[3:]}
-    assert lines["exports"][1:3] == ["3", "303"] and lines["jax"][1:3] == ["2", "201"]
-    assert lines["meshes"][1] == lines["lark"][1] == "1" and lines["total"][1] == "7"
+    assert lines["exports"][1:3] == ["3", "303"] and lines["jax"][1:3] == ["3", "303"]
+    assert lines["meshes"][1] == lines["lark"][1] == "1" and lines["total"][1] == "8"
     assert str(cache) in result.stdout
 
     report = tmp_path / "cache.json"
     assert main(["cache", "--clear", "exports", "meshes", "--json", str(report), "-q"]) == 0
     data = json.loads(report.read_text())
-    assert data["removed"] == {"files": 4, "bytes": 100 + 101 + 102 + 100}
-    assert {p["part"]: p["files"] for p in data["parts"]} == {"exports": 0, "jax": 2, "meshes": 0, "lark": 1}
+    assert data["removed"] == {"files": 4, "bytes": 100 + 101 + 102 + 100, "problems": []}
+    assert {p["part"]: p["files"] for p in data["parts"]} == {"exports": 0, "jax": 3, "meshes": 0, "lark": 1}
     assert main(["cache", "--clear", "-q"]) == 0
-    assert sorted(p.name for p in cache.rglob("*") if p.is_file()) == sorted(p.name for p in mine)
-    assert all(p.read_text() == "the user's" for p in mine)
+    left = sorted(str(p.relative_to(cache)) for p in cache.rglob("*") if not p.is_dir() or p.name.startswith("8"))
+    assert left == sorted(
+        ["exports/" + "8" * 64 + ".jaxexport", "meshes/" + "9" * 64 + ".npz"]
+        + [str(p.relative_to(cache)) for p in mine]
+    )
+    assert users.read_text() == "the user's" and all(p.read_text() == "the user's" for p in mine)
 
     bad = run("cache", "--clear", "everything")
     assert bad.returncode == 2 and "invalid choice" in bad.stderr
-    monkeypatch.setenv("MBCAL_CACHE", "off")
+
+    kept = cache / "lark" / "mdl-grammar.lark"
+    kept.write_text("tables")
+    other = cache / "jax" / ("jit_call-" + "1" * 64 + "-cache")
+    other.write_text("program")
+    unlink = type(kept).unlink
+
+    def refuse(path, *a, **kw):  # a file the user may not remove (root may remove anything)
+        if path == kept:
+            raise PermissionError(13, "Permission denied", str(path))
+        return unlink(path, *a, **kw)
+
+    monkeypatch.setattr(type(kept), "unlink", refuse)
+    assert main(["cache", "--clear", "-q"]) == 2  # named on stderr; the other files still removed
+    assert kept.exists() and not other.exists()
+    monkeypatch.setattr(type(kept), "unlink", unlink)
+    monkeypatch.setenv("MBCAL_CACHE", "off")  # caching off: nothing shown, nothing removed
     off = run("cache", "--clear")
     assert off.returncode == 0 and "caching is off" in off.stdout
-    assert all(p.exists() for p in mine)
+    assert kept.read_text() == "tables"
