@@ -14,7 +14,10 @@ from __future__ import annotations
 
 import functools
 import gc
+import importlib.machinery
+import importlib.util
 import os
+import sys
 from collections.abc import Callable
 from typing import Any
 
@@ -155,9 +158,54 @@ def _after_compile(event: str, duration_secs: float, **_kwargs: str | int) -> No
 jax.monitoring.register_event_duration_secs_listener(_after_compile)
 
 
+_LAPACK_MODULES = ("scipy.linalg.cython_blas", "scipy.linalg.cython_lapack")
+
+
+@functools.lru_cache(maxsize=1)
+def prepare_lapack() -> bool:
+    """Give jaxlib its LAPACK without importing ``scipy.linalg`` (issue 16); True when done so.
+
+    On the CPU, jaxlib finds LAPACK and BLAS through the function tables of SciPy's two Cython
+    modules, which it imports by name the first time a program is lowered that solves a linear
+    system, and every time an exported program is lowered (``jax.export``: any of mbcal's cached
+    programs).  Importing ``scipy.linalg.cython_blas`` runs ``scipy.linalg``'s ``__init__``,
+    ~0.11 s of every command on the 2-core machine, though the command uses nothing else of it.
+    Here the two extension modules are loaded from their files (~0.02 s with ``import scipy``),
+    jaxlib reads its tables from them (once per process), and they leave ``sys.modules`` again,
+    so that a later ``import scipy.linalg`` is the ordinary one (it finds the same loaded
+    modules).  Anything unexpected — ``scipy.linalg`` already imported, another backend, another
+    SciPy or jaxlib — and nothing is done: jaxlib imports ``scipy.linalg`` itself as before."""
+    if "scipy.linalg" in sys.modules or jax.default_backend() != "cpu":
+        return False
+    added: list[str] = []
+    try:
+        from jax._src.lax.linalg import initialize_lapack
+
+        package = importlib.util.find_spec("scipy.linalg")  # imports the top-level scipy only
+        if package is None or not package.submodule_search_locations:
+            return False
+        for name in _LAPACK_MODULES:
+            spec = importlib.machinery.PathFinder.find_spec(name, list(package.submodule_search_locations))
+            if spec is None or spec.loader is None or name in sys.modules:
+                return False
+            module = importlib.util.module_from_spec(spec)
+            sys.modules[name] = module
+            added.append(name)
+            spec.loader.exec_module(module)
+        initialize_lapack()
+    except Exception:  # pragma: no cover - another layout: jaxlib imports scipy.linalg itself
+        return False
+    finally:
+        for name in added:
+            sys.modules.pop(name, None)
+    return True
+
+
 def jit(fun: Callable, **kwargs: Any) -> Any:
     """``jax.jit(fun, **kwargs)`` with mbcal's XLA options (:func:`compiler_options`): used for
-    mbcal's own programs only.  Without options it is ``jax.jit`` itself."""
+    mbcal's own programs only.  Without options it is ``jax.jit`` itself.  The first call also
+    readies jaxlib's LAPACK (:func:`prepare_lapack`)."""
+    prepare_lapack()
     options = compiler_options()
     if not options:
         return jax.jit(fun, **kwargs)

@@ -8,6 +8,7 @@ import json
 import os
 import subprocess
 import sys
+from typing import Any
 
 import numpy as np
 import pytest
@@ -114,9 +115,14 @@ def test_the_program_cache_is_bounded_and_drops_the_least_recently_used():
     assert PROGRAMS.size <= 16
 
 
-def run_python(code: str, **env: str) -> dict:
+def run_python(code: str, **env: str) -> Any:
+    return run_python_argv(code, **env)
+
+
+def run_python_argv(code: str, *argv: str, **env: str) -> Any:
+    """The JSON that ``code`` prints last, run in a fresh Python with ``argv`` and ``env``."""
     full = {**os.environ, **env}
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, env=full)
+    proc = subprocess.run([sys.executable, "-c", code, *argv], capture_output=True, text=True, cwd=ROOT, env=full)
     assert proc.returncode == 0, proc.stderr
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
@@ -141,6 +147,48 @@ def test_the_calibration_path_does_not_import_scipy_stats_or_plotting():
     )
     late = ("scipy.stats", "scipy.special", "scipy.ndimage")
     assert not [m for m in loaded if m in late or m.split(".")[0] in ("matplotlib", "pyrender", "cv2")]
+
+
+LAPACK_RUN = """
+import json, sys
+import numpy as np
+import mbcal._jax as mj
+from mbcal.workflows.cameras import calibrate_cameras, simulate_views
+from mbcal.language import load_model
+before = 'scipy.linalg' in sys.modules
+model = load_model(sys.argv[1])
+truth = {"cam.fx": 812.0, "cam.fy": 806.5, "cam.cx": 327.0, "cam.cy": 236.0, "cam.k1": -0.21, "cam.k2": 0.08}
+data = simulate_views(model, 4, truth, seed=2, distance=(0.45, 0.7))[0]
+cc = calibrate_cameras(model, data)
+during = 'scipy.linalg' in sys.modules
+import scipy.linalg
+capi = sorted(scipy.linalg.cython_lapack.__pyx_capi__)[:1]
+chol = float(scipy.linalg.cholesky(np.eye(2) * 4.0)[0, 0])
+print(json.dumps([before, during, mj.prepare_lapack(), capi, chol, list(cc.result.values.values())]))
+"""
+
+
+@pytest.mark.parametrize("cached", [False, True])
+def test_jaxlib_gets_lapack_without_importing_scipy_linalg(tmp_path, cached):
+    # jaxlib imported scipy.linalg (~0.11 s of every command) only for two Cython modules' tables:
+    # the Cholesky steps of a traced solver and every exported program's lowering need them.
+    model = str(MODELS / "camera_calibration.mdl")
+    cache = {"MBCAL_CACHE_DIR": str(tmp_path / "cache")} if cached else {"MBCAL_CACHE": "off"}
+    runs = [run_python_argv(LAPACK_RUN, model, **cache) for _ in range(2 if cached else 1)]
+    for before, during, prepared, capi, chol, _ in runs:
+        assert (before, during, prepared) == (False, False, True)
+        assert capi and chol == 2.0  # the ordinary scipy.linalg afterwards, its Cython tables too
+    if cached:  # the second process called the exported programs instead of tracing
+        assert list(tmp_path.joinpath("cache", "exports").iterdir())
+        np.testing.assert_allclose(runs[0][-1], runs[1][-1], rtol=1e-9)
+
+
+def test_with_scipy_linalg_already_imported_jaxlib_is_left_to_import_it_itself():
+    out = run_python(
+        "import json, scipy.linalg, mbcal._jax as mj, jax.numpy as jnp; "
+        "print(json.dumps([mj.prepare_lapack(), float(mj.jit(jnp.linalg.cholesky)(jnp.eye(2) * 9.0)[0, 0])]))"
+    )
+    assert out == [False, 3.0]
 
 
 def test_a_quiet_command_does_not_compute_the_report_it_does_not_show(camera, tmp_path, monkeypatch, capsys):
