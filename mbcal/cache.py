@@ -1,6 +1,6 @@
 """Caches that make the second run of a problem start fast.
 
-Four caches, all in ``$MBCAL_CACHE_DIR`` (default ``$XDG_CACHE_HOME/mbcal`` or
+Five caches, all in ``$MBCAL_CACHE_DIR`` (default ``$XDG_CACHE_HOME/mbcal`` or
 ``~/.cache/mbcal``); ``MBCAL_CACHE=off`` turns them off:
 
 * JAX's persistent compilation cache (``jax/``): compiled XLA executables, keyed by JAX on the
@@ -16,10 +16,13 @@ Four caches, all in ``$MBCAL_CACHE_DIR`` (default ``$XDG_CACHE_HOME/mbcal`` or
 * the triangles of mesh files (``meshes/``, :mod:`mbcal.language.meshes`): keyed by the file's
   bytes, its format and trimesh's version; a command on a model with meshes does not import
   trimesh (~0.6 s) to read them again (every format but ``.gltf``, whose buffers are other files).
+* model files parsed (``syntax/``, :mod:`mbcal.language.parse`): a file's statements, keyed by
+  its text and path, the grammar and the parser's code; a command on a model parsed before does
+  not import Lark (~0.06 s with the parse).  The oldest are removed beyond 256 entries.
 
 ``mbcal cache`` shows what each holds (:func:`cache_contents`) and ``mbcal cache --clear`` removes
-it (:func:`clear_cache`; only files with the names these caches give them).  Nothing is evicted
-on its own: the folder grows with every new problem structure and JAX program.
+it (:func:`clear_cache`; only files with the names these caches give them).  Nothing else is
+evicted on its own: the folder grows with every new problem structure and JAX program.
 
 This module imports JAX only when a JAX cache is used, so the parser (and ``mbcal check``) can
 use :func:`cache_dir` without loading JAX.
@@ -127,6 +130,7 @@ CACHE_PARTS: dict[str, tuple[str, str]] = {
     "jax": ("compiled programs (JAX's compilation cache)", r"[\w.\-]+-[0-9a-f]{64}-(?:cache|atime)"),
     "meshes": ("triangles of mesh files, keyed by their bytes", r"[0-9a-f]{64}\.npz"),
     "lark": ("the model language's parser tables", r"mdl-grammar\.lark"),
+    "syntax": ("model files parsed, keyed by their text (at most 256)", r"[0-9a-f]{64}\.json"),
 }
 
 

@@ -108,6 +108,7 @@ def test_cache_shows_each_part_and_clears_only_the_files_mbcal_wrote(tmp_path, m
         ],
         "meshes": ["f" * 64 + ".npz"],
         "lark": ["mdl-grammar.lark"],
+        "syntax": ["7" * 64 + ".json"],
     }
     for part, names in files.items():
         (cache / part).mkdir(parents=True)
@@ -127,14 +128,15 @@ def test_cache_shows_each_part_and_clears_only_the_files_mbcal_wrote(tmp_path, m
     assert result.returncode == 0, result.stderr
     lines = {line.split()[0]: line.split() for line in result.stdout.splitlines()[3:]}
     assert lines["exports"][1:3] == ["3", "303"] and lines["jax"][1:3] == ["3", "303"]
-    assert lines["meshes"][1] == lines["lark"][1] == "1" and lines["total"][1] == "8"
+    assert lines["meshes"][1] == lines["lark"][1] == lines["syntax"][1] == "1" and lines["total"][1] == "9"
     assert str(cache) in result.stdout
 
     report = tmp_path / "cache.json"
     assert main(["cache", "--clear", "exports", "meshes", "--json", str(report), "-q"]) == 0
     data = json.loads(report.read_text())
     assert data["removed"] == {"files": 4, "bytes": 100 + 101 + 102 + 100, "problems": []}
-    assert {p["part"]: p["files"] for p in data["parts"]} == {"exports": 0, "jax": 3, "meshes": 0, "lark": 1}
+    left_over = {"exports": 0, "jax": 3, "meshes": 0, "lark": 1, "syntax": 1}
+    assert {p["part"]: p["files"] for p in data["parts"]} == left_over
     assert main(["cache", "--clear", "-q"]) == 0
     left = sorted(str(p.relative_to(cache)) for p in cache.rglob("*") if not p.is_dir() or p.name.startswith("8"))
     assert left == sorted(

@@ -277,6 +277,88 @@ def test_a_mesh_is_read_with_trimesh_once_then_from_the_cache_folder(write_model
     assert len(list((cache / "meshes").glob("*.npz"))) == 4
 
 
+def test_a_model_file_is_parsed_with_lark_once_then_read_from_the_cache_folder(write_model, tmp_path, monkeypatch):
+    # Lark's import, its tables and the parse were ~0.06 s of every command that loads a model
+    # (issue 16): the statements of a file that parsed are kept, keyed by its text and path.
+    import json
+    import os
+    import subprocess
+    import sys
+
+    from mbcal.language import parse
+
+    cache = tmp_path / "cache"
+    monkeypatch.setenv("MBCAL_CACHE_DIR", str(cache))
+    monkeypatch.delenv("MBCAL_CACHE", raising=False)
+    text = "param a = 1 m in [0, 2 m]\nframe f at (a, 0, 0) {\n  point p = (0, 0, 1 m)\n}\n"
+    path = write_model(text)
+    first = parse.parse_file(path)
+    entries = sorted((cache / "syntax").glob("*.json"))
+    assert len(entries) == 1
+    assert parse.parse_file(path) == first == parse.parse_text(text, str(path))  # what Lark gives
+
+    code = (
+        "import json, sys; from mbcal.language import load_model; "
+        f"m = load_model({str(tmp_path / path)!r}); "
+        "print(json.dumps({'lark': 'lark' in sys.modules, 'nominal': m.nominal.tolist()}))"
+    )
+    env = {**os.environ, "MBCAL_CACHE_DIR": str(cache)}
+    run = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    out = json.loads(run.stdout)
+    assert out == {"lark": False, "nominal": [1.0]}  # a second process: no Lark
+    assert len(list((cache / "syntax").glob("*.json"))) == 1
+
+    # A later check still shows the offending line from a model read from the cache.
+    broken = write_model(text + "point q = (b, 0, 0)\n", name="broken.mdl")
+    parse.parse_file(broken)  # parses (the undefined name is the checker's error), kept
+    errors._SOURCES.pop(broken, None)
+    with monkeypatch.context() as patch:
+        patch.setattr(parse, "parse_text", lambda *a: pytest.fail("parsed again"))
+        with pytest.raises(errors.UndefinedNameError) as err:
+            load_model(broken)
+    assert "broken.mdl:5:12: undefined name 'b'" in str(err.value)
+    assert "point q = (b, 0, 0)" in err.value.render()
+    assert errors._SOURCES[broken] == text + "point q = (b, 0, 0)\n"  # remembered, as a parse does
+
+    # A syntax error is not kept, and is the same error every time.
+    bad = write_model("frame f at (0, 0 {\n}\n", name="bad.mdl")
+    count = len(list((cache / "syntax").glob("*.json")))
+    messages = []
+    for _ in range(2):
+        with pytest.raises(errors.MdlSyntaxError) as err:
+            parse.parse_file(bad)
+        messages.append(str(err.value))
+    assert messages[0] == messages[1] and "bad.mdl:1:" in messages[0]
+    assert len(list((cache / "syntax").glob("*.json"))) == count
+
+    # The same text under another path is another entry: the spans name the file they are in.
+    other = write_model(text, name="other.mdl")
+    assert parse.parse_file(other)[0].span.path.endswith("other.mdl")
+    assert parse.parse_file(path)[0].span.path.endswith(path)
+
+    # A spoilt entry is parsed again and rewritten; another grammar or parser code is a new key.
+    for spoilt in (b"not JSON", b'[{"@": "Popen", "args": "touch x"}]', b'[{"@": "Param", "name": "a"}]'):
+        entries[0].write_bytes(spoilt)  # not JSON; a class that is no syntax-tree node; other fields
+        assert parse.parse_file(path) == first
+        assert entries[0].read_bytes() != spoilt
+    monkeypatch.setattr(parse, "_syntax_code", lambda: b"another grammar")
+    before = len(list((cache / "syntax").glob("*.json")))
+    assert parse.parse_file(path) == first
+    assert len(list((cache / "syntax").glob("*.json"))) == before + 1
+
+    # Bounded: writing one more beyond the limit removes the oldest.
+    monkeypatch.setattr(parse, "_SYNTAX_ENTRIES", 4)
+    monkeypatch.setattr(parse, "_SYNTAX_KEEP", 2)
+    for k in range(6):
+        parse.parse_file(write_model(text + f"param extra{k} = {k}\n", name=f"m{k}.mdl"))
+    assert len(list((cache / "syntax").glob("*.json"))) <= 4
+
+    monkeypatch.setenv("MBCAL_CACHE", "off")  # caching off: parsed with Lark, nothing written
+    kept = sorted((cache / "syntax").glob("*.json"))
+    assert parse.parse_file(write_model(text + "param off = 1\n", name="off.mdl"))
+    assert sorted((cache / "syntax").glob("*.json")) == kept
+
+
 def test_range_sensor_directions_are_normalised():
     model = load_model_text(
         "range a(direction = (0, 0, 2))\nrange b(directions = [(1, 0, 0), (0, 3, 4)])\n"

@@ -6,9 +6,24 @@ own :class:`~mbcal.errors.SourceSpan`, so two trees parsed from the same text co
 
 from __future__ import annotations
 
+import contextlib
+import sys
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 from mbcal.errors import SourceSpan
+
+
+@contextlib.contextmanager
+def deep_recursion(limit: int = 8000) -> Iterator[None]:
+    """Allow the recursive walks over a (depth-checked) syntax tree more stack than Python's default."""
+    old = sys.getrecursionlimit()
+    sys.setrecursionlimit(max(old, limit))
+    try:
+        yield
+    finally:
+        sys.setrecursionlimit(old)
+
 
 # ---- expressions --------------------------------------------------------------------------
 
