@@ -361,10 +361,14 @@ def _read_json(text: str, path: str, builder: SetBuilder) -> None:
         raise MeasurementFileError("'measurements' must be a list", top)
     offsets = _json_line_index(text)
     allowed = record_keys()
+    counted, line = 0, 1  # lines counted up to offset `counted` (the records come in order)
     for i, item in enumerate(items):
         if i < len(offsets):
             off = offsets[i]
-            line = text.count("\n", 0, off) + 1
+            if off < counted:
+                counted, line = 0, 1
+            line += text.count("\n", counted, off)
+            counted = off
             col = off - (text.rfind("\n", 0, off) + 1) + 1
             where = SourceSpan(path, line, col)
         else:
