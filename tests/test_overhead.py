@@ -4,6 +4,7 @@ a command needs."""
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import os
 import subprocess
@@ -397,3 +398,34 @@ def test_plots_leave_the_callers_matplotlib_backend_and_pyplot_alone(camera, tmp
             assert img.format == "PNG" and img.size[0] > 500
     if "matplotlib.pyplot" in sys.modules:  # imported by another test of this process: none left open
         assert sys.modules["matplotlib.pyplot"].get_fignums() == []
+
+
+def test_the_residual_bars_are_red_above_the_outlier_threshold_and_blue_below(camera, tmp_path):
+    # The bars are drawn as two filled step outlines (one patch per measurement took ~0.6 s for
+    # 702 corners): the worst first, red exactly for the measurements above the threshold.
+    from PIL import Image
+
+    from mbcal.render.overlays import residual_plot
+
+    data = camera_data(camera, 3, seed=5)
+    cc = calibrate_cameras(camera, data)
+
+    def bar_colours(result, name):
+        residual_plot(result, tmp_path / name)
+        with Image.open(tmp_path / name) as img:
+            left = np.asarray(img.convert("RGB"))[:, : img.size[0] // 2].reshape(-1, 3).astype(int)
+        red = np.all(np.abs(left - [0xD6, 0x27, 0x28]) <= 2, axis=1).sum()
+        blue = np.all(np.abs(left - [0x1F, 0x77, 0xB4]) <= 2, axis=1).sum()
+        return red, blue
+
+    assert max(r.normalized for r in cc.result.residuals) < cc.result.outlier_threshold
+    red, blue = bar_colours(cc.result, "clean.png")
+    assert blue > 5000 and red < 300  # the threshold's dashed line and its legend are the only red
+    measurements = list(data.measurements)
+    m = measurements[7]
+    moved = dataclasses.replace(m, value=np.asarray(m.value) + [40.0, -40.0])
+    measurements[7] = moved
+    spoilt = calibrate_cameras(camera, dataclasses.replace(data, measurements=measurements))
+    assert sum(r.normalized > spoilt.result.outlier_threshold for r in spoilt.result.residuals) >= 1
+    red_out, blue_out = bar_colours(spoilt.result, "outlier.png")
+    assert red_out > red + 500 and blue_out > 500  # the outlier stretches the axis: shorter blue bars

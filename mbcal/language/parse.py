@@ -31,6 +31,7 @@ __all__ = [
     "grammar_path",
     "grammar_text",
     "parse_text",
+    "parse_text_cached",
     "parse_text_with_includes",
     "parse_file",
     "deep_recursion",
@@ -120,8 +121,9 @@ def _syntax_code() -> bytes:
     return h.hexdigest().encode()
 
 
-def _parse_cached(text: str, path: str) -> tuple[ast.Statement, ...]:
-    """:func:`parse_text` through the parsed-model cache (none when caching is off)."""
+def parse_text_cached(text: str, path: str) -> tuple[ast.Statement, ...]:
+    """:func:`parse_text` through the parsed-model cache (none when caching is off): for the text of
+    a file (a string parsed once, as in a test, gains nothing from it)."""
     folder = cache_dir()
     if folder is None:
         return parse_text(text, path)
@@ -262,7 +264,7 @@ def _parse_with_includes(path: Path, stack: tuple[Path, ...], span: SourceSpan |
         raise IncludeError(f"includes nested deeper than {MAX_INCLUDE_DEPTH} files", span)
     display = _display_path(path) if span is None else _display_path(resolved)
     text = _read_model_text(path, span)
-    statements = _parse_cached(text, display)
+    statements = parse_text_cached(text, display)
     return _resolve_includes(statements, resolved, (*stack, resolved))
 
 

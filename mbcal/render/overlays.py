@@ -138,8 +138,13 @@ def residual_plot(result, path, *, title: str | None = None) -> Path:
     fig, axes = plot_figure(1, 2 if image_rows else 1, figsize=(11 if image_rows else 6, 4.2))
     ax = axes[0, 0]
     values = np.array([r.normalized for r in rows])
-    colors = ["#d62728" if v > result.outlier_threshold else "#1f77b4" for v in values]
-    ax.bar(np.arange(len(values)), values, color=colors, width=1.0)
+    # Bars of width 1, worst first, the ones above the threshold red: drawn as two filled step
+    # outlines instead of one patch per measurement (702 corners: ~0.6 s of patches).
+    above = int(np.count_nonzero(values > result.outlier_threshold))
+    edges = np.arange(len(values) + 1) - 0.5
+    for part, color in ((slice(0, above), "#d62728"), (slice(above, len(values)), "#1f77b4")):
+        if part.stop > part.start:
+            ax.stairs(values[part], edges[part.start : part.stop + 1], fill=True, color=color, baseline=0.0)
     ax.axhline(
         result.outlier_threshold,
         color="#d62728",
@@ -170,5 +175,8 @@ def residual_plot(result, path, *, title: str | None = None) -> Path:
     if title:
         fig.suptitle(title)
     fig.tight_layout()
+    # Laid out: no engine left, so savefig draws once (a placeholder engine, as tight_layout leaves,
+    # made it draw the whole figure twice: ~0.07 s of the demo).  The picture is the same.
+    fig.set_layout_engine(None)
     save_figure(fig, path)
     return Path(path)
