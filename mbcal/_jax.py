@@ -18,6 +18,7 @@ import importlib.machinery
 import importlib.util
 import os
 import sys
+import threading
 from collections.abc import Callable
 from typing import Any
 
@@ -159,9 +160,10 @@ jax.monitoring.register_event_duration_secs_listener(_after_compile)
 
 
 _LAPACK_MODULES = ("scipy.linalg.cython_blas", "scipy.linalg.cython_lapack")
+_LAPACK_LOCK = threading.Lock()
+_LAPACK_DONE: list[bool] = []  # [whether prepare_lapack gave jaxlib its tables] once it has run
 
 
-@functools.lru_cache(maxsize=1)
 def prepare_lapack() -> bool:
     """Give jaxlib its LAPACK without importing ``scipy.linalg`` (issue 16); True when done so.
 
@@ -173,17 +175,32 @@ def prepare_lapack() -> bool:
     Here the two extension modules are loaded from their files (~0.02 s with ``import scipy``),
     jaxlib reads its tables from them (once per process), and they leave ``sys.modules`` again,
     so that a later ``import scipy.linalg`` is the ordinary one (it finds the same loaded
-    modules).  Anything unexpected — ``scipy.linalg`` already imported, another backend, another
-    SciPy or jaxlib — and nothing is done: jaxlib imports ``scipy.linalg`` itself as before."""
+    modules).  This runs under Python's import lock, so no other thread can import a module while
+    the two stand half-made in ``sys.modules``.  Anything unexpected — ``scipy.linalg`` already
+    imported, another backend, another SciPy or jaxlib or Python — and nothing is done: jaxlib
+    imports ``scipy.linalg`` itself as before."""
+    with _LAPACK_LOCK:
+        if not _LAPACK_DONE:
+            _LAPACK_DONE.append(_load_lapack_tables())
+        return _LAPACK_DONE[0]
+
+
+def _load_lapack_tables() -> bool:
     if "scipy.linalg" in sys.modules or jax.default_backend() != "cpu":
         return False
-    added: list[str] = []
     try:
+        import _imp
+
         from jax._src.lax.linalg import initialize_lapack
 
         package = importlib.util.find_spec("scipy.linalg")  # imports the top-level scipy only
-        if package is None or not package.submodule_search_locations:
-            return False
+    except Exception:  # pragma: no cover - another layout: jaxlib imports scipy.linalg itself
+        return False
+    if package is None or not package.submodule_search_locations:
+        return False
+    added: list[str] = []
+    _imp.acquire_lock()  # re-entrant for this thread: the modules' own imports still work
+    try:
         for name in _LAPACK_MODULES:
             spec = importlib.machinery.PathFinder.find_spec(name, list(package.submodule_search_locations))
             if spec is None or spec.loader is None or name in sys.modules:
@@ -198,6 +215,7 @@ def prepare_lapack() -> bool:
     finally:
         for name in added:
             sys.modules.pop(name, None)
+        _imp.release_lock()
     return True
 
 

@@ -11,7 +11,7 @@ Five caches, all in ``$MBCAL_CACHE_DIR`` (default ``$XDG_CACHE_HOME/mbcal`` or
   measurement structure, unknowns, σ, solver settings, shapes and mbcal code — only the
   measured values and known readings may differ) loads the program instead and, with the
   compilation cache, gets its first result in a fraction of a second.
-* the model language's parser tables (``lark/``, :mod:`mbcal.language.parse`): Lark's LALR
+* the model language's parser tables (``lark/``, :mod:`mbcal.language.syntax`): Lark's LALR
   tables, checked by Lark against a hash of the grammar — every command starts ~0.1 s sooner.
 * the triangles of mesh files (``meshes/``, :mod:`mbcal.language.meshes`): keyed by the file's
   bytes, its format and trimesh's version; a command on a model with meshes does not import

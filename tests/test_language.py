@@ -295,7 +295,8 @@ def test_a_model_file_is_parsed_with_lark_once_then_read_from_the_cache_folder(w
     first = parse.parse_file(path)
     entries = sorted((cache / "syntax").glob("*.json"))
     assert len(entries) == 1
-    assert parse.parse_file(path) == first == parse.parse_text(text, str(path))  # what Lark gives
+    same = parse._to_json  # the spans too (a node's == leaves them out)
+    assert same(parse.parse_file(path)) == same(first) == same(parse.parse_text(text, str(path)))  # what Lark gives
 
     code = (
         "import json, sys; from mbcal.language import load_model; "
@@ -339,19 +340,31 @@ def test_a_model_file_is_parsed_with_lark_once_then_read_from_the_cache_folder(w
     # A spoilt entry is parsed again and rewritten; another grammar or parser code is a new key.
     for spoilt in (b"not JSON", b'[{"@": "Popen", "args": "touch x"}]', b'[{"@": "Param", "name": "a"}]'):
         entries[0].write_bytes(spoilt)  # not JSON; a class that is no syntax-tree node; other fields
-        assert parse.parse_file(path) == first
+        assert same(parse.parse_file(path)) == same(first)
         assert entries[0].read_bytes() != spoilt
+    code = parse._syntax_code
     monkeypatch.setattr(parse, "_syntax_code", lambda: b"another grammar")
     before = len(list((cache / "syntax").glob("*.json")))
     assert parse.parse_file(path) == first
     assert len(list((cache / "syntax").glob("*.json"))) == before + 1
+    monkeypatch.setattr(parse, "_syntax_code", code)
 
-    # Bounded: writing one more beyond the limit removes the oldest.
+    # Bounded: writing one more beyond the limit removes the least recently used (a hit counts as a
+    # use), and only the part's own entries (the folder may hold the user's files).
     monkeypatch.setattr(parse, "_SYNTAX_ENTRIES", 4)
     monkeypatch.setattr(parse, "_SYNTAX_KEEP", 2)
+    users = cache / "syntax" / "notes.json"
+    users.write_text("the user's")
+    parsed = []
+    lark = parse.parse_text
+    monkeypatch.setattr(parse, "parse_text", lambda text, where: parsed.append(where) or lark(text, where))
     for k in range(6):
         parse.parse_file(write_model(text + f"param extra{k} = {k}\n", name=f"m{k}.mdl"))
-    assert len(list((cache / "syntax").glob("*.json"))) <= 4
+        parse.parse_file(path)  # used again each time: kept
+    assert parsed == [f"m{k}.mdl" for k in range(6)]  # never model.mdl again
+    assert len(list((cache / "syntax").glob("*.json"))) <= 4 + 1
+    assert users.read_text() == "the user's"
+    monkeypatch.setattr(parse, "parse_text", lark)
 
     monkeypatch.setenv("MBCAL_CACHE", "off")  # caching off: parsed with Lark, nothing written
     kept = sorted((cache / "syntax").glob("*.json"))

@@ -400,6 +400,30 @@ def test_unknown_keys_in_json_records_are_errors(tmp_path, lever, monkeypatch, e
         assert hint in str(info.value)
 
 
+@pytest.mark.parametrize("layout", ["one line", "a line each", "records spread over lines"])
+def test_a_json_records_error_names_its_line_and_column_however_the_file_is_laid_out(
+    tmp_path, lever, monkeypatch, layout
+):
+    # Each record's line is counted on from the previous record's (counting from the file's start
+    # was quadratic in the records); the column from the line's start, on one line too.
+    monkeypatch.chdir(tmp_path)
+    good = {"kind": "image_point", "camera": "eye", "point": "lever.hub", "u": 1.0, "v": 2.0}
+    records = [json.dumps(good)] * 5 + [json.dumps({**good, "sigam": 1})] + [json.dumps(good)] * 2
+    if layout == "one line":
+        text = '{"measurements": [' + ", ".join(records) + "]}"
+    elif layout == "a line each":
+        text = '{"measurements": [\n' + ",\n".join("    " + r for r in records) + "\n]}\n"
+    else:
+        text = '{"measurements": [\n' + ",\n".join(r.replace(", ", ",\n  ") for r in records) + "\n]}\n"
+    write(tmp_path, "m.json", text)
+    offset = [i for i in range(len(text)) if text.startswith('{"kind"', i)][5]
+    line = text.count("\n", 0, offset) + 1
+    column = offset - (text.rfind("\n", 0, offset) + 1) + 1
+    with pytest.raises(MeasurementFileError) as info:
+        read_measurements("m.json", lever)
+    assert str(info.value).startswith(f"m.json:{line}:{column}: unknown key 'sigam'"), str(info.value)
+
+
 @pytest.mark.parametrize(
     ("text", "message"),
     [

@@ -21,7 +21,7 @@ from mbcal.errors import MbcalError
 from mbcal.export.urdf import write_urdf
 from mbcal.language import ast
 from mbcal.language.model import Model
-from mbcal.language.parse import parse_text_cached
+from mbcal.language.parse import display_path, parse_text_cached
 from mbcal.language.urdf import urdf_to_mdl
 from mbcal.outputs import atomic_write, check_output
 from mbcal.units import UNITS
@@ -64,7 +64,7 @@ def _relocate(text: str, source: Path, out: Path) -> list[tuple[int, int, str]]:
         return []
     lines = text.splitlines(keepends=True)
     edits = []
-    for value, span, what in _file_references(parse_text_cached(text, str(source))):
+    for value, span, what in _file_references(parse_text_cached(text, display_path(source))):
         if Path(value).is_absolute():
             continue
         target = (source.resolve().parent / value).resolve()

@@ -12,7 +12,8 @@ import-linter contract in ``pyproject.toml`` keeps it so):
   functions that the checker and both evaluators share; ``arguments`` matches calls to
   signatures;
 * ``model`` is the checked model (``summary`` prints it), ``meshes`` reads mesh files, and
-  ``parse`` turns text into the syntax tree of ``ast``.
+  ``parse`` turns text into the syntax tree of ``ast`` (through the cache folder; ``syntax``
+  is the Lark parser it falls back on).
 
 This file only re-exports.
 """

@@ -16,11 +16,12 @@ import functools
 import importlib.util
 import json
 import os
+import re
 import sys
 from pathlib import Path
 
 from mbcal import errors as _errors
-from mbcal.cache import Hasher, cache_dir
+from mbcal.cache import CACHE_PARTS, Hasher, cache_dir
 from mbcal.errors import IncludeError, MdlSyntaxError, SourceSpan, remember_source
 from mbcal.language import ast
 from mbcal.language.ast import deep_recursion
@@ -32,6 +33,7 @@ __all__ = [
     "grammar_text",
     "parse_text",
     "parse_text_cached",
+    "display_path",
     "parse_text_with_includes",
     "parse_file",
     "deep_recursion",
@@ -110,14 +112,19 @@ def _syntax_code() -> bytes:
     and define them (this one, :mod:`~mbcal.language.syntax`, :mod:`~mbcal.language.ast`,
     :mod:`mbcal.errors`), Lark's install (its ``__init__``'s location, size and time: found
     without importing it) and Python's version."""
-    h = Hasher().add("syntax", _ENTRY_VERSION, sys.version)
+    from mbcal import __version__
+
+    h = Hasher().add("syntax", _ENTRY_VERSION, sys.version, __version__)
     here = Path(__file__).parent
     for path in (grammar_path(), here / "parse.py", here / "syntax.py", here / "ast.py", Path(_errors.__file__)):
-        h.add_file(path)
+        h.add_file(path)  # an install whose files cannot be read (a zip) is keyed by the version
     spec = importlib.util.find_spec("lark")
     if spec is not None and spec.origin is not None:
-        st = os.stat(spec.origin)
-        h.add(spec.origin, st.st_size, st.st_mtime_ns)
+        try:
+            st = os.stat(spec.origin)
+            h.add(spec.origin, st.st_size, st.st_mtime_ns)
+        except OSError:  # Lark from a zip or a frozen bundle: its location only
+            h.add(spec.origin)
     return h.hexdigest().encode()
 
 
@@ -140,6 +147,8 @@ def parse_text_cached(text: str, path: str) -> tuple[ast.Statement, ...]:
             stored = None
         if isinstance(stored, tuple) and all(isinstance(s, ast.Statement) for s in stored):
             remember_source(path, text)  # for the messages of later checks, as a parse would
+            with contextlib.suppress(OSError):
+                os.utime(entry)  # used now: the last to be removed when the part is full
             return stored
     statements = parse_text(text, path)  # raises on an error: only a text that parsed is kept
     try:
@@ -192,8 +201,10 @@ def _from_json(value: object) -> object:
 
 
 def _make_room(folder: Path) -> None:
-    """Remove the oldest entries of the parsed-model cache when it holds :data:`_SYNTAX_ENTRIES`."""
-    entries = [p for p in folder.glob("*.json") if not p.name.startswith(".")]
+    """Remove the least recently used entries of the parsed-model cache when it holds
+    :data:`_SYNTAX_ENTRIES`."""
+    name = re.compile(CACHE_PARTS["syntax"][1])  # only the entries (the folder may hold the user's files)
+    entries = [p for p in folder.iterdir() if name.fullmatch(p.name)]
     if len(entries) < _SYNTAX_ENTRIES:
         return
 
@@ -247,7 +258,9 @@ def parse_file(path: str | os.PathLike[str]) -> tuple[ast.Statement, ...]:
     return _parse_with_includes(Path(path), (), None)
 
 
-def _display_path(path: Path) -> str:
+def display_path(path: Path) -> str:
+    """How a model file is named in messages and spans: relative to the working folder when it is
+    below it, else as given."""
     try:
         rel = os.path.relpath(path)
     except ValueError:  # another drive on Windows
@@ -258,11 +271,11 @@ def _display_path(path: Path) -> str:
 def _parse_with_includes(path: Path, stack: tuple[Path, ...], span: SourceSpan | None) -> tuple[ast.Statement, ...]:
     resolved = path.resolve()
     if resolved in stack:
-        cycle = " -> ".join(_display_path(p) for p in (*stack[stack.index(resolved) :], resolved))
+        cycle = " -> ".join(display_path(p) for p in (*stack[stack.index(resolved) :], resolved))
         raise IncludeError(f"include cycle: {cycle}", span)
     if len(stack) >= MAX_INCLUDE_DEPTH:
         raise IncludeError(f"includes nested deeper than {MAX_INCLUDE_DEPTH} files", span)
-    display = _display_path(path) if span is None else _display_path(resolved)
+    display = display_path(path) if span is None else display_path(resolved)
     text = _read_model_text(path, span)
     statements = parse_text_cached(text, display)
     return _resolve_includes(statements, resolved, (*stack, resolved))

@@ -133,13 +133,14 @@ def calibration_overlays(
 
 def residual_plot(result, path, *, title: str | None = None) -> Path:
     """A PNG of the normalised residuals (worst first) and of the image residual vectors."""
-    rows = sorted(result.residuals, key=lambda r: -r.normalized)
+    rows = sorted(result.residuals, key=lambda r: -r.normalized if np.isfinite(r.normalized) else np.inf)
     image_rows = [r for r in result.residuals if r.kind == "image_point"]
     fig, axes = plot_figure(1, 2 if image_rows else 1, figsize=(11 if image_rows else 6, 4.2))
     ax = axes[0, 0]
     values = np.array([r.normalized for r in rows])
-    # Bars of width 1, worst first, the ones above the threshold red: drawn as two filled step
-    # outlines instead of one patch per measurement (702 corners: ~0.6 s of patches).
+    # Bars of width 1, worst first (a residual that is not a number last), the ones above the
+    # threshold red: drawn as two filled step outlines instead of one patch per measurement (702
+    # corners: ~0.6 s of patches).
     above = int(np.count_nonzero(values > result.outlier_threshold))
     edges = np.arange(len(values) + 1) - 0.5
     for part, color in ((slice(0, above), "#d62728"), (slice(above, len(values)), "#1f77b4")):
