@@ -18,7 +18,7 @@ Five caches, all in ``$MBCAL_CACHE_DIR`` (default ``$XDG_CACHE_HOME/mbcal`` or
   trimesh (~0.6 s) to read them again (every format but ``.gltf``, whose buffers are other files).
 * model files parsed (``syntax/``, :mod:`mbcal.language.parse`): a file's statements, keyed by
   its text and path, the grammar and the parser's code; a command on a model parsed before does
-  not import Lark (~0.06 s with the parse).  The oldest are removed beyond 256 entries.
+  not import Lark (~0.06 s with the parse).  The least recently used go beyond 256 entries.
 
 ``mbcal cache`` shows what each holds (:func:`cache_contents`) and ``mbcal cache --clear`` removes
 it (:func:`clear_cache`; only files with the names these caches give them).  Nothing else is

@@ -1360,11 +1360,12 @@ def build_parser() -> argparse.ArgumentParser:
         "cache",
         "show what mbcal keeps in its cache folder, or clear it",
         """
-        mbcal keeps traced and compiled programs, the triangles of mesh files and its parser's
-        tables in $MBCAL_CACHE_DIR (default ~/.cache/mbcal; MBCAL_CACHE=off turns caching off),
-        so that the second run of a problem starts at once.  Nothing is evicted on its own: this
-        shows how many files each part holds and their size, and --clear removes them (only
-        files with the names mbcal's caches give them; a later run rebuilds what it needs).
+        mbcal keeps traced and compiled programs, the triangles of mesh files, its parser's
+        tables and the model files it parsed in $MBCAL_CACHE_DIR (default ~/.cache/mbcal;
+        MBCAL_CACHE=off turns caching off), so that the second run of a problem starts at once.
+        Only the parsed model files are evicted on their own (the least recently used beyond
+        256): this shows how many files each part holds and their size, and --clear removes them
+        (only files with the names mbcal's caches give them; a later run rebuilds what it needs).
         """,
         "mbcal cache --clear exports jax",
         cmd_cache,
