@@ -286,6 +286,14 @@ class Problem:
         scenes = self.scenes(x, known)
         return [g.model.visible(scenes, g.batch) for g in self.groups]
 
+    def first_analysis(self) -> bool:
+        """Whether no calibration in this process has analysed a problem of this structure yet (its
+        analysis programs are not loaded): :func:`mbcal.api.calibrate` then loads them beside the
+        solve.  Later calls say False."""
+        first = not self._programs.analysed
+        self._programs.analysed = True
+        return first
+
     def visible(self, x: Array | None = None) -> np.ndarray:
         """Per measurement: whether it can be made (point in front of the camera and in the image, ...)."""
         flags = self._values(self.params.x0 if x is None else x)[1]
@@ -466,6 +474,7 @@ class _Programs:
         self.whole = self._saveable("whole scenes", jit(whole))
         self.points: dict[Any, Any] = {}
         self.compressed_points: dict[Any, Any] = {}
+        self.analysed = False  # whether a calibration has analysed a problem of this structure
 
     def _saveable(self, name: str, jitted: Any) -> Any:
         """``jitted``, saved in the cache folder on its first call (:func:`mbcal.cache.exported`), so

@@ -429,3 +429,45 @@ def test_the_residual_bars_are_red_above_the_outlier_threshold_and_blue_below(ca
     assert sum(r.normalized > spoilt.result.outlier_threshold for r in spoilt.result.residuals) >= 1
     red_out, blue_out = bar_colours(spoilt.result, "outlier.png")
     assert red_out > red + 500 and blue_out > 500  # the outlier stretches the axis: shorter blue bars
+
+
+def test_the_analysis_programs_load_beside_the_solve_once_per_structure(camera, monkeypatch):
+    # XLA reads and compiles programs without Python's lock: the analysis's programs (compressed J,
+    # visibility) load in a thread while the solver's does (issue 16), the first time a structure
+    # is analysed in the process only, and the thread is done when calibrate returns.
+    import threading
+
+    from mbcal import api
+
+    started = []
+    load = api._load_analysis_programs
+
+    def recording(*a, **kw):
+        started.append(load(*a, **kw))
+        return started[-1]
+
+    monkeypatch.setattr(api, "_load_analysis_programs", recording)
+    data = camera_data(camera, 11, seed=21)  # a structure no other test analyses
+    first = calibrate_cameras(camera, data)
+    again = calibrate_cameras(camera, data)
+    assert isinstance(started[0], threading.Thread) and not started[0].is_alive()
+    assert isinstance(started[1], api._Nothing)  # loaded already: nothing started
+    assert not [t for t in threading.enumerate() if t.name == "mbcal-analysis-programs"]
+    np.testing.assert_array_equal(first.result.x, again.result.x)
+    np.testing.assert_array_equal(first.result.residuals.normalized, again.result.residuals.normalized)
+
+    # An error in the thread is the analysis's to report: here only the thread's call fails.
+    real = api.compressed_jacobian
+
+    def failing_in_the_thread(*a, **kw):
+        if threading.current_thread().name == "mbcal-analysis-programs":
+            raise RuntimeError("not here")
+        return real(*a, **kw)
+
+    monkeypatch.setattr(api, "compressed_jacobian", failing_in_the_thread)
+    other = calibrate_cameras(camera, camera_data(camera, 12, seed=22))
+    assert isinstance(started[2], threading.Thread) and other.result.rms["image_point"] < 1.0
+
+    monkeypatch.setattr(api, "_LOAD_BESIDE_VALUES", 10)  # too large to load beside the solve
+    calibrate_cameras(camera, camera_data(camera, 14, seed=23))
+    assert isinstance(started[3], api._Nothing)
