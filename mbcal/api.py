@@ -19,7 +19,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from mbcal._jax import release_memory
+from mbcal._jax import jax, release_memory
 from mbcal.errors import MbcalError, SolverError
 from mbcal.errors import suggest as suggest_name
 from mbcal.fit import FitConfig, assess_fit, assess_plan
@@ -442,35 +442,40 @@ def calibrate(
     say(f"solving: {params.size} unknowns, {problem.size} residuals, {len(starts)} restarts")
     args = (problem.y, params.known)
     analysis = _load_analysis_programs(problem, structure, starts[0], args)
-    if structure is not None:
-        solved = least_squares_structured(
-            problem.residual_function,
-            starts,
-            structure,
-            args=args,
-            config=config,
-            local=problem.local,
-            cache_key=problem.fingerprint(),  # issue 16: a second process does not trace it again
-            bounds=params.bounds,  # hard limits, projected steps by blocks (None: none)
-        )
-    else:
-        solved = least_squares(
-            problem.residual_function,
-            starts,
-            args=args,
-            config=config,
-            size=problem.n_residuals,
-            cache_key=problem.fingerprint(),
-            bounds=params.bounds,  # hard limits (None: none); issue 14
-            local=problem.local,  # rotation steps for roll-pitch-yaw orientations (None: none)
-        )
+    try:
+        if structure is not None:
+            solved = least_squares_structured(
+                problem.residual_function,
+                starts,
+                structure,
+                args=args,
+                config=config,
+                local=problem.local,
+                cache_key=problem.fingerprint(),  # issue 16: a second process does not trace it again
+                bounds=params.bounds,  # hard limits, projected steps by blocks (None: none)
+            )
+        else:
+            solved = least_squares(
+                problem.residual_function,
+                starts,
+                args=args,
+                config=config,
+                size=problem.n_residuals,
+                cache_key=problem.fingerprint(),
+                bounds=params.bounds,  # hard limits (None: none); issue 14
+                local=problem.local,  # rotation steps for roll-pitch-yaw orientations (None: none)
+            )
+    except BaseException as err:
+        if not isinstance(err, KeyboardInterrupt):  # interrupted, it does not wait for the (daemon) thread
+            analysis.join()  # a failed solve too: nothing of this call runs on after it
+        raise
+    analysis.join()
     if solved.best < 0:
         raise SolverError(
             "every restart failed: the residuals are not finite at any starting point "
             "(a point behind a camera? a zero-length axis?)",
             hint="check the model's nominal values and the search ranges",
         )
-    analysis.join()
     x = solved.x_best
     say("analysing observability")
     cost = solved.cost_best
@@ -528,6 +533,17 @@ def calibrate(
 _LOAD_BESIDE_VALUES = 4_000_000
 
 
+def _jax_set_here() -> bool:
+    """Whether JAX settings that a thread does not inherit are in force (``with
+    jax.default_device(...)``, ``jax.disable_jit()``, NaN/Inf debugging): the programs are then
+    not loaded in a thread, which would load them for other settings."""
+    # jax.config's attributes give the value in force in this thread
+    flags = ("jax_disable_jit", "jax_debug_nans", "jax_debug_infs")
+    return any(getattr(jax.config, name) for name in flags) or any(
+        getattr(jax.config, name) is not None for name in ("jax_default_device",)
+    )
+
+
 class _Started(Protocol):
     def join(self) -> None: ...
 
@@ -549,8 +565,12 @@ def _load_analysis_programs(problem: Problem, structure: Structure | None, x: np
     the thread still builds it would be built twice.  An error there is left for the analysis to
     raise where it belongs."""
     width = problem.params.size if structure is None else structure.nb + structure.ks
-    if problem.n_residuals * width > _LOAD_BESIDE_VALUES or not problem.first_analysis():
+    if problem.n_residuals * width > _LOAD_BESIDE_VALUES or _jax_set_here():
         return _Nothing()
+    if not problem.first_analysis():
+        return _Nothing()
+    if structure is not None:
+        structure.arrays()  # built once here, not by both threads at the same time
 
     def load() -> None:
         try:

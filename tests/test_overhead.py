@@ -436,38 +436,67 @@ def test_the_analysis_programs_load_beside_the_solve_once_per_structure(camera, 
     # visibility) load in a thread while the solver's does (issue 16), the first time a structure
     # is analysed in the process only, and the thread is done when calibrate returns.
     import threading
+    import time
 
     from mbcal import api
 
-    started = []
+    started, loading = [], []
     load = api._load_analysis_programs
+    real = api.compressed_jacobian
 
     def recording(*a, **kw):
         started.append(load(*a, **kw))
         return started[-1]
 
+    def who_loads(*a, **kw):
+        loading.append(threading.current_thread().name)
+        if loading[-1] == "mbcal-analysis-programs":
+            time.sleep(0.5)  # slower than the solve: calibrate must wait for it
+        return real(*a, **kw)
+
     monkeypatch.setattr(api, "_load_analysis_programs", recording)
+    monkeypatch.setattr(api, "compressed_jacobian", who_loads)
     data = camera_data(camera, 11, seed=21)  # a structure no other test analyses
-    first = calibrate_cameras(camera, data)
+    with jax_events() as events:
+        first = calibrate_cameras(camera, data)
+    assert isinstance(started[0], threading.Thread) and not started[0].is_alive()  # joined
+    assert "mbcal-analysis-programs" in loading and events[COMPILE] > 0
+    started.clear()
     again = calibrate_cameras(camera, data)
-    assert isinstance(started[0], threading.Thread) and not started[0].is_alive()
-    assert isinstance(started[1], api._Nothing)  # loaded already: nothing started
+    assert started and all(isinstance(s, api._Nothing) for s in started)  # loaded already: none started
     assert not [t for t in threading.enumerate() if t.name == "mbcal-analysis-programs"]
     np.testing.assert_array_equal(first.result.x, again.result.x)
     np.testing.assert_array_equal(first.result.residuals.normalized, again.result.residuals.normalized)
 
     # An error in the thread is the analysis's to report: here only the thread's call fails.
-    real = api.compressed_jacobian
-
     def failing_in_the_thread(*a, **kw):
         if threading.current_thread().name == "mbcal-analysis-programs":
             raise RuntimeError("not here")
         return real(*a, **kw)
 
     monkeypatch.setattr(api, "compressed_jacobian", failing_in_the_thread)
+    started.clear()
     other = calibrate_cameras(camera, camera_data(camera, 12, seed=22))
-    assert isinstance(started[2], threading.Thread) and other.result.rms["image_point"] < 1.0
+    assert isinstance(started[0], threading.Thread) and other.result.rms["image_point"] < 1.0
 
+    # A failed solve joins it too: nothing runs on after the call.
+    def failing_solve(*a, **kw):
+        raise api.SolverError("the solver failed")
+
+    monkeypatch.setattr(api, "least_squares_structured", failing_solve)
+    started.clear()
+    with pytest.raises(api.SolverError):
+        calibrate_cameras(camera, camera_data(camera, 15, seed=24))
+    assert isinstance(started[0], threading.Thread) and not started[0].is_alive()
+    monkeypatch.undo()
+
+    monkeypatch.setattr(api, "_load_analysis_programs", recording)
     monkeypatch.setattr(api, "_LOAD_BESIDE_VALUES", 10)  # too large to load beside the solve
+    started.clear()
     calibrate_cameras(camera, camera_data(camera, 14, seed=23))
-    assert isinstance(started[3], api._Nothing)
+    assert started and isinstance(started[0], api._Nothing)
+    monkeypatch.setattr(api, "_LOAD_BESIDE_VALUES", 4_000_000)
+    started.clear()
+    with jax.default_device(jax.devices("cpu")[0]):  # a setting the thread would not inherit
+        calibrate_cameras(camera, camera_data(camera, 16, seed=25))
+    assert started and isinstance(started[0], api._Nothing)
