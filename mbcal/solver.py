@@ -42,7 +42,7 @@ from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
-from mbcal._jax import jax, jit, jnp, to_device
+from mbcal._jax import as_argument, jax, jit, jnp
 from mbcal.cache import Hasher, exported
 from mbcal.errors import SolverError
 
@@ -759,13 +759,13 @@ def least_squares(
     """
     config = config or SolverConfig()
     x0 = np.atleast_2d(np.asarray(x0, dtype=float))
-    args = tuple(to_device(a) for a in args)  # not jnp.asarray: it compiles a program per shape
+    args = tuple(as_argument(a) for a in args)  # not jnp.asarray: it compiles a program per shape
     local = local if config.manifold else None
     limits, x0 = hard_limits(bounds, x0)
     program = _compiled(fun, config, size, limits is not None, local if local is None else _Identity(local))
-    example: tuple[Any, ...] = (to_device(x0), args)
+    example: tuple[Any, ...] = (x0, args)
     if limits is not None:
-        example += (to_device(limits[0]), to_device(limits[1]))
+        example += limits
     if cache_key is not None:
         key = Hasher().add(cache_key, repr(config), size, x0.shape, [(a.shape, str(a.dtype)) for a in args])
         if limits is not None:

@@ -47,7 +47,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from mbcal._jax import jax, jit, jnp, release_memory
+from mbcal._jax import as_argument, jax, jit, jnp, release_memory
 from mbcal.cache import Hasher, exported
 from mbcal.datasets.bal import BalProblem
 from mbcal.errors import SolverError
@@ -575,7 +575,7 @@ def least_squares_structured(
     limits, x0 = hard_limits(bounds, x0)
     # NumPy arguments go straight into the compiled program (~3 µs; jax.device_put costs ~30 µs
     # each, jnp.asarray compiles a program per shape: issue 16)
-    args = tuple(a if isinstance(a, jax.Array) else np.asarray(a) for a in args)
+    args = tuple(as_argument(a) for a in args)
     local = local if config.manifold else None
     ix = structure.arrays()
     sizes = (structure.m, structure.n_blocks, structure.n_groups, len(ix["pair_block"]), structure.nb, ix["padded"])
@@ -632,7 +632,7 @@ def compressed_jacobian(
     instead of tracing it: ~0.15 s of a command-line calibration, issue 16)."""
     c = structure.nb + structure.ks
     program = _compressed_program(fun, c, None if local is None else _Identity(local))
-    args = tuple(a if isinstance(a, jax.Array) else np.asarray(a) for a in args)
+    args = tuple(as_argument(a) for a in args)
     example = (np.asarray(x, dtype=float), structure.arrays()["slot"], args)
     if cache_key is not None:
         key = Hasher().add("compressed", cache_key, c, example[0].shape, example[1].shape)
