@@ -310,6 +310,9 @@ def test_a_ctrl_c_that_python_swallows_in_a_finalizer_still_interrupts(tmp_path)
         textwrap.dedent(
             f"""
             import gc, os, signal, sys, weakref
+            # Ctrl-C as in a terminal: a shell starts a background job with it ignored, and a
+            # test run started so would pass that on (then no Ctrl-C can reach the command).
+            signal.signal(signal.SIGINT, signal.default_int_handler)
             from mbcal import cli
             from mbcal.outputs import atomic_write
 
