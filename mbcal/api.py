@@ -537,11 +537,9 @@ def _jax_set_here() -> bool:
     """Whether JAX settings that a thread does not inherit are in force (``with
     jax.default_device(...)``, ``jax.disable_jit()``, NaN/Inf debugging): the programs are then
     not loaded in a thread, which would load them for other settings."""
-    # jax.config's attributes give the value in force in this thread
-    flags = ("jax_disable_jit", "jax_debug_nans", "jax_debug_infs")
-    return any(getattr(jax.config, name) for name in flags) or any(
-        getattr(jax.config, name) is not None for name in ("jax_default_device",)
-    )
+    # jax.config's attributes give the value in force in this thread (False or None: not set)
+    names = ("jax_disable_jit", "jax_debug_nans", "jax_debug_infs", "jax_default_device")
+    return any(getattr(jax.config, name) not in (None, False) for name in names)
 
 
 class _Started(Protocol):
