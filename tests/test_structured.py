@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import mbcal
+from mbcal import structured
 from mbcal._jax import jax, jnp
 from mbcal.api import _analysed_by_blocks
 from mbcal.datasets.bal import BalFileError, bal_residual, read_bal
@@ -98,6 +99,48 @@ def test_structured_iterates_agree_with_the_dense_solver_on_a_20_view_calibratio
     assert R.shape == (problem.params.size, problem.params.size)
     sv = np.linalg.svd(J, compute_uv=False)
     np.testing.assert_allclose(np.linalg.svd(R, compute_uv=False), sv, rtol=1e-9, atol=1e-12 * sv[0])
+
+
+@pytest.mark.parametrize("lapack_blocks", [0, 64])  # unrolled, LAPACK
+def test_both_ways_of_inverting_the_blocks_give_the_inverse_and_nan_where_a_block_is_not_positive_definite(
+    lapack_blocks, monkeypatch
+):
+    monkeypatch.setattr(structured, "LAPACK_BLOCKS", lapack_blocks)
+    rng = np.random.default_rng(7)
+    A = rng.normal(size=(40, 6, 9))
+    M = A @ A.transpose(0, 2, 1) + 0.1 * np.eye(6)
+    M[5] = -M[5]  # negative definite
+    M[9, 2, 2] = -1.0  # indefinite
+    inverse = np.asarray(jax.jit(structured._inverse_blocks)(M))
+    good = np.setdiff1d(np.arange(40), [5, 9])
+    np.testing.assert_allclose(inverse[good], np.linalg.inv(M[good]), rtol=1e-10, atol=1e-12)
+    assert np.isnan(inverse[5]).any() and np.isnan(inverse[9]).any()  # the step is then rejected
+
+
+@pytest.mark.slow
+def test_the_unrolled_and_lapack_block_inverses_take_the_same_steps(camera20, monkeypatch):
+    """20 views: LAPACK's inverses by default (up to LAPACK_BLOCKS blocks), the unrolled ones
+    beyond; both the dense solver's iterates."""
+    _, _, problem, x0 = camera20
+    structure = structure_of(problem)
+    args = (problem.y, problem.params.known)
+    config = SolverConfig(max_iterations=3)
+    assert structure.n_blocks <= structured.LAPACK_BLOCKS
+    dense = least_squares(problem.residual_function, x0, args=args, config=config, local=problem.local)
+    solved = []
+    for limit in (structured.LAPACK_BLOCKS, 0):
+        monkeypatch.setattr(structured, "LAPACK_BLOCKS", limit)
+        structured._compiled.cache_clear()  # traced again with this limit
+        solved.append(
+            least_squares_structured(
+                problem.residual_function, x0, structure, args=args, config=config, local=problem.local
+            )
+        )
+    structured._compiled.cache_clear()
+    scale = np.maximum(1.0, np.abs(dense.x_best))
+    for ours in solved:
+        assert np.max(np.abs(ours.x_best - dense.x_best) / scale) < 1e-10
+        assert ours.iterations[0] == dense.iterations[0] == 3
 
 
 @pytest.mark.slow
