@@ -21,8 +21,10 @@ Five caches, all in ``$MBCAL_CACHE_DIR`` (default ``$XDG_CACHE_HOME/mbcal`` or
   not import Lark (~0.06 s with the parse).  The least recently used go beyond 256 entries.
 
 ``mbcal cache`` shows what each holds (:func:`cache_contents`) and ``mbcal cache --clear`` removes
-it (:func:`clear_cache`; only files with the names these caches give them).  Nothing else is
-evicted on its own: the folder grows with every new problem structure and JAX program.
+it (:func:`clear_cache`; only files with the names these caches give them).  The two parts that
+grow with every new problem structure — ``exports/`` and ``jax/`` — are each kept under
+``MBCAL_CACHE_MAX_MB`` megabytes (default 256, :func:`max_part_bytes`): whenever mbcal saves a
+new program, the least recently used entries beyond that go (:func:`trim_programs`).
 
 This module imports JAX only when a JAX cache is used, so the parser (and ``mbcal check``) can
 use :func:`cache_dir` without loading JAX.
@@ -33,8 +35,10 @@ reuses a stale program.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
+import math
 import os
 import re
 import threading
@@ -46,6 +50,7 @@ from typing import Any
 
 import numpy as np
 
+from mbcal.errors import MbcalError
 from mbcal.outputs import atomic_write
 from mbcal.resources import find_bundled, package_root
 
@@ -54,6 +59,8 @@ __all__ = [
     "cache_contents",
     "clear_cache",
     "Cleared",
+    "max_part_bytes",
+    "trim_programs",
     "CACHE_PARTS",
     "enable_compilation_cache",
     "exported",
@@ -210,6 +217,89 @@ def clear_cache(folder: Path | None = None, parts: Sequence[str] | None = None) 
     return Cleared(count, total, tuple(problems))
 
 
+# The parts holding programs, which grow with every new problem structure; the others are small
+# (meshes, the grammar) or bounded by their own count (syntax).
+PROGRAM_PARTS = ("exports", "jax")
+DEFAULT_MAX_MB = 256.0
+_TRIM_TO = 0.9  # a trim leaves this fraction of the bound: not one removal per new program
+
+
+def max_part_bytes() -> int:
+    """The size in bytes that each of :data:`PROGRAM_PARTS` is kept under: ``MBCAL_CACHE_MAX_MB``
+    megabytes (of 2²⁰ bytes, as ``mbcal cache`` counts them; default :data:`DEFAULT_MAX_MB`).  A
+    value that is not a positive number is an error (:class:`~mbcal.errors.MbcalError`), not a
+    silent default."""
+    text = os.environ.get("MBCAL_CACHE_MAX_MB", "").strip()
+    if not text:
+        return int(DEFAULT_MAX_MB * 2**20)
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise MbcalError(
+            f"MBCAL_CACHE_MAX_MB={text!r}: not a positive number of megabytes (default {DEFAULT_MAX_MB:g})"
+        )
+    return max(1, int(value * 2**20))
+
+
+def _entry_of(part: str, name: str) -> str:
+    """The entry a file belongs to: JAX keeps an entry as ``<key>-cache`` and, when its own
+    eviction is on, ``<key>-atime``; an interrupted write's leftover is an entry of its own."""
+    if part == "jax" and (name.endswith("-cache") or name.endswith("-atime")):
+        return name.rsplit("-", 1)[0]
+    return name
+
+
+def trim_programs(folder: Path | None = None, limit: int | None = None, keep: Path | None = None) -> Cleared:
+    """Remove the least recently used entries of each of :data:`PROGRAM_PARTS` of the cache folder
+    (``folder``, default :func:`cache_dir`) that holds more than ``limit`` bytes (default
+    :func:`max_part_bytes`), down to 90 % of it.  Last use is a file's modification or access
+    time, whichever is later: mbcal marks an exported program when it loads it, and the file
+    system marks JAX's entries when they are read (with Linux's default ``relatime``, at least
+    once a day).  Only files with the names these caches give them are touched; one that cannot
+    be removed is skipped (a concurrent process may have removed it): it loses nothing but speed.
+    ``keep``: a file never removed (the entry just written)."""
+    folder = cache_dir() if folder is None else folder
+    limit = max_part_bytes() if limit is None else limit
+    count = total = 0
+    problems: list[str] = []
+    if folder is None:
+        return Cleared(0, 0)
+    for part in PROGRAM_PARTS:
+        entries: dict[str, list[tuple[Path, int, float]]] = {}
+        try:
+            files = _cache_files(folder, part)
+        except OSError:
+            continue
+        for path in files:
+            try:
+                st = path.stat()
+            except OSError:
+                continue
+            entries.setdefault(_entry_of(part, path.name), []).append((path, st.st_size, max(st.st_mtime, st.st_atime)))
+        held = sum(size for items in entries.values() for _, size, _ in items)
+        if held <= limit:
+            continue
+        by_use = sorted(entries.values(), key=lambda items: max(used for _, _, used in items))
+        by_use = [items for items in by_use if all(path != keep for path, _, _ in items)]
+        for items in by_use:
+            if held <= _TRIM_TO * limit:
+                break
+            for path, size, _ in items:
+                try:
+                    path.unlink()
+                except FileNotFoundError:
+                    pass
+                except OSError as err:
+                    problems.append(f"{path}: {err.strerror or err}")
+                    continue
+                else:
+                    count, total = count + 1, total + size
+                held -= size
+    return Cleared(count, total, tuple(problems))
+
+
 def _size(path: Path) -> int:
     try:
         return path.stat().st_size
@@ -313,6 +403,7 @@ def exported(key: str, jitted: Callable, *example: Any, keep: bool = True) -> Ca
 
 
 def _load_or_export(export: Any, folder: Path, key: str, jitted: Callable, example: tuple) -> Callable:
+    limit = max_part_bytes()  # a bad MBCAL_CACHE_MAX_MB is said at once, not at the next new program
     enable_compilation_cache()
     path = folder / "exports" / f"{key}.jaxexport"
     program = None
@@ -321,11 +412,15 @@ def _load_or_export(export: Any, folder: Path, key: str, jitted: Callable, examp
             program = export.deserialize(bytearray(path.read_bytes()))
         except Exception:  # a truncated or foreign file: export it again
             program = None
+        else:
+            with contextlib.suppress(OSError):
+                os.utime(path)  # its last use, for trim_programs
     if program is None:
         program = export.export(jitted)(*example)  # type: ignore[arg-type]  # a jax.jit result; stub wants jax.stages.Wrapped
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             atomic_write(path, bytes(program.serialize()))
+            trim_programs(folder, limit, keep=path)
         except OSError:
             pass  # a read-only cache: still correct, only slower next time
     from mbcal._jax import jit

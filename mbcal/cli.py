@@ -32,7 +32,7 @@ if "numpy" not in sys.modules:
 import numpy as np  # noqa: E402
 
 from mbcal import __version__  # noqa: E402
-from mbcal.cache import CACHE_PARTS, cache_contents, cache_dir, clear_cache  # noqa: E402
+from mbcal.cache import CACHE_PARTS, PROGRAM_PARTS, cache_contents, cache_dir, clear_cache, max_part_bytes  # noqa: E402
 from mbcal.errors import MbcalError  # noqa: E402
 from mbcal.outputs import INTERRUPTED, atomic_write, check_output, check_output_folder  # noqa: E402
 from mbcal.text import table  # noqa: E402
@@ -94,10 +94,12 @@ def cmd_cache(args: argparse.Namespace) -> int:
     folder = cache_dir()
     removed = clear_cache(folder, args.clear or None) if folder is not None and args.clear is not None else None
     parts = cache_contents(folder)
+    bound = max_part_bytes()
     problems = [f"{p['folder']}: {p['error']}" for p in parts if "error" in p]
     problems += [] if removed is None else list(removed.problems)
     if args.json:
         report: dict[str, Any] = {"folder": None if folder is None else str(folder), "parts": parts}
+        report["max_part_bytes"] = {part: bound for part in PROGRAM_PARTS}
         if removed is not None:
             report["removed"] = {"files": removed.files, "bytes": removed.bytes, "problems": list(removed.problems)}
         _write_json(report, args.json, [])
@@ -118,6 +120,10 @@ def cmd_cache(args: argparse.Namespace) -> int:
         rows.append(["total", sum(p["files"] for p in parts), _bytes_text(total), ""])
         title = f"mbcal's cache folder: {folder} ($MBCAL_CACHE_DIR; MBCAL_CACHE=off turns it off)"
         lines.append(table(["part", "files", "size", "holds"], rows, align="lrrl", title=title))
+        lines.append(
+            f"programs ({', '.join(PROGRAM_PARTS)}): each part kept under {_bytes_text(bound)} "
+            "($MBCAL_CACHE_MAX_MB, in MB), the least recently used removed first"
+        )
         return "\n".join(lines)
 
     _say(args, text)
@@ -1363,8 +1369,9 @@ def build_parser() -> argparse.ArgumentParser:
         mbcal keeps traced and compiled programs, the triangles of mesh files, its parser's
         tables and the model files it parsed in $MBCAL_CACHE_DIR (default ~/.cache/mbcal;
         MBCAL_CACHE=off turns caching off), so that the second run of a problem starts at once.
-        Only the parsed model files are evicted on their own (the least recently used beyond
-        256): this shows how many files each part holds and their size, and --clear removes them
+        The programs (exports, jax) are each kept under MBCAL_CACHE_MAX_MB megabytes (default
+        256) and the parsed model files under 256 entries, the least recently used going first:
+        this shows how many files each part holds and their size, and --clear removes them
         (only files with the names mbcal's caches give them; a later run rebuilds what it needs).
         """,
         "mbcal cache --clear exports jax",

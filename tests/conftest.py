@@ -17,6 +17,14 @@ SHARED_DATA = ROOT.parent / "shared" / "data"
 # Debian's Chromium, driven by Playwright (its own browser download is impossible on these machines).
 CHROMIUM = "/usr/bin/chromium"
 
+# The suite's programs and parsed models go to a cache folder of this checkout's own, not to the
+# user's (~/.cache/mbcal): a run traces and exports thousands of test problems, which would fill
+# it and push out the entries of the user's own models.  Kept between runs (the second run is
+# faster) and ignored by git; a run with MBCAL_CACHE_DIR set (as .ci/run does) uses that folder.
+TEST_CACHE = ROOT / ".cache" / "mbcal"
+if not os.environ.get("MBCAL_CACHE_DIR"):
+    os.environ["MBCAL_CACHE_DIR"] = str(TEST_CACHE)
+
 # A true pose of the factory corner that differs from its model by a few centimetres and degrees.
 ROOM_TRUTH = {
     "room.x": 0.02,

@@ -90,10 +90,98 @@ def test_check_and_help_do_not_import_jax():
     assert proc.returncode == 0, proc.stderr
 
 
+def test_the_suite_never_writes_into_the_users_cache_folder():
+    """tests/conftest.py points the suite (and the commands it starts) at a cache folder of its
+    own unless MBCAL_CACHE_DIR names one: thousands of test programs would fill the user's."""
+    import os
+    from pathlib import Path
+
+    from mbcal.cache import cache_dir
+
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    assert os.environ.get("MBCAL_CACHE_DIR") and cache_dir() != Path(base) / "mbcal"
+    child = run("cache", "--json", "-")
+    assert child.returncode == 0 and f'"folder": "{cache_dir()}"' in child.stdout
+
+
+def test_the_program_parts_are_kept_under_their_bound_least_recently_used_first(tmp_path, monkeypatch):
+    import os
+    import time
+
+    from mbcal.cache import trim_programs
+    from mbcal.errors import MbcalError
+
+    cache = tmp_path / "cache"
+    (cache / "exports").mkdir(parents=True)
+    (cache / "jax").mkdir()
+    now = time.time()
+
+    def entry(path, size, used):  # used: seconds ago
+        path.write_bytes(b"x" * size)
+        os.utime(path, (now - used, now - used))
+        return path
+
+    exports = [
+        entry(cache / "exports" / (c * 64 + ".jaxexport"), 100, used) for c, used in zip("abcde", [50, 10, 40, 20, 30])
+    ]
+    # JAX's entries: a program and, with JAX's own eviction on, its access-time file (removed together);
+    # "1" was written long ago but read a minute ago (its access time): kept before "2".
+    jax = {}
+    for c, used in zip("123", [900, 300, 600]):
+        jax[c] = [entry(cache / "jax" / f"jit_f-{c * 64}-cache", 200, used)]
+    os.utime(jax["1"][0], (now - 60, now - 900))
+    jax["3"].append(entry(cache / "jax" / f"jit_f-{'3' * 64}-atime", 8, 600))
+    mine = entry(cache / "exports" / "notes.txt", 5000, 1000)  # the user's file, not an entry: never removed
+
+    assert trim_programs(cache, limit=1000).files == 0  # nothing over the bound: nothing removed
+    cleared = trim_programs(cache, limit=350)
+    # exports: 500 bytes > 350, the least recently used go until 90 % (315) is left: a, then c.
+    assert [p.exists() for p in exports] == [False, True, False, True, True]
+    # jax: 608 bytes > 350: "3" (used 600 s ago, both files), then "2" (300 s); "1" was read last.
+    assert [all(p.exists() for p in jax[c]) for c in "123"] == [True, False, False]
+    assert not any(p.exists() for p in jax["3"])
+    assert cleared.files == 5 and cleared.bytes == 2 * 100 + 200 + 208 and mine.exists()
+    # The entry just written is never removed, even when it alone is over the bound.
+    assert trim_programs(cache, limit=10, keep=exports[1]).files == 3
+    assert exports[1].exists() and not exports[3].exists() and mine.exists()
+
+    monkeypatch.setenv("MBCAL_CACHE_DIR", str(cache))
+    monkeypatch.setenv("MBCAL_CACHE_MAX_MB", "lots")
+    with pytest.raises(MbcalError, match="MBCAL_CACHE_MAX_MB='lots': not a positive number"):
+        trim_programs()
+    bad = run("cache")
+    assert bad.returncode == 2 and "MBCAL_CACHE_MAX_MB='lots'" in bad.stderr
+    monkeypatch.setenv("MBCAL_CACHE_MAX_MB", "0.5")
+    shown = run("cache")
+    assert shown.returncode == 0 and "kept under 512.0 kB" in shown.stdout
+
+
+def test_exported_programs_are_marked_when_loaded_and_old_ones_removed_when_new_ones_come(tmp_path, monkeypatch):
+    import hashlib
+    import os
+
+    from mbcal._jax import jax
+    from mbcal.cache import exported
+
+    monkeypatch.setenv("MBCAL_CACHE_DIR", str(tmp_path))
+    monkeypatch.delenv("MBCAL_CACHE", raising=False)
+    key = [hashlib.sha256(name.encode()).hexdigest() for name in ("first", "second")]
+    path = [tmp_path / "exports" / f"{k}.jaxexport" for k in key]
+    x = jax.numpy.arange(3.0)
+    assert float(exported(key[0], jax.jit(lambda v: v + 1), x, keep=False)(x)[2]) == 3.0
+    os.utime(path[0], (1, 1))  # as if last used long ago
+    assert float(exported(key[0], jax.jit(lambda v: v + 1), x, keep=False)(x)[2]) == 3.0
+    assert path[0].stat().st_mtime > 1  # loaded: its use is marked
+    size = path[0].stat().st_size
+    monkeypatch.setenv("MBCAL_CACHE_MAX_MB", str(1.5 * size / 2**20))  # room for one program
+    os.utime(path[0], (1, 1))
+    assert float(exported(key[1], jax.jit(lambda v: v * 2), x, keep=False)(x)[2]) == 4.0
+    assert path[1].exists() and not path[0].exists()  # the new one written, the old one gone
+
+
 def test_cache_shows_each_part_and_clears_only_the_files_mbcal_wrote(tmp_path, monkeypatch):
-    # The cache folder grows with every problem structure and program (nothing is evicted):
-    # `mbcal cache` says what it holds, --clear empties it — and never touches a file it did not
-    # write, since MBCAL_CACHE_DIR may name a folder of the user's.
+    # `mbcal cache` says what the cache folder holds, --clear empties it — and never touches a
+    # file it did not write, since MBCAL_CACHE_DIR may name a folder of the user's.
     import json
 
     from mbcal.cli import main
