@@ -26,9 +26,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from mbcal._collector import gc_paused
+
 jax.config.update("jax_enable_x64", True)
 
-__all__ = ["jax", "jnp", "jit", "compiler_options", "to_device", "as_argument", "on_host", "release_memory"]
+__all__ = [
+    "jax",
+    "jnp",
+    "jit",
+    "compiler_options",
+    "to_device",
+    "as_argument",
+    "on_host",
+    "release_memory",
+]
 
 # XLA:CPU options for mbcal's programs (issue 16).  XLA:CPU's newer MLIR "fusion emitters" took
 # half of a cold first call (the room's solver: 1.5 s of compile CPU, 0.8 s with XLA's classic
@@ -221,13 +232,13 @@ def _load_lapack_tables() -> bool:
 
 def jit(fun: Callable, **kwargs: Any) -> Any:
     """``jax.jit(fun, **kwargs)`` with mbcal's XLA options (:func:`compiler_options`): used for
-    mbcal's own programs only.  Without options it is ``jax.jit`` itself.  The first call also
-    readies jaxlib's LAPACK (:func:`prepare_lapack`)."""
+    mbcal's own programs only; traced, lowered and compiled with Python's garbage collector
+    paused (:func:`mbcal._collector.gc_paused`).  The first call also readies jaxlib's LAPACK
+    (:func:`prepare_lapack`)."""
     prepare_lapack()
     options = compiler_options()
-    if not options:
-        return jax.jit(fun, **kwargs)
-    return _Program(jax.jit(fun, compiler_options=options, **kwargs), jax.jit(fun, **kwargs))
+    plain = jax.jit(fun, **kwargs)
+    return _Program(jax.jit(fun, compiler_options=options, **kwargs) if options else plain, plain)
 
 
 def _top_level() -> bool:
@@ -243,24 +254,32 @@ class _Program:
     """A jitted program of mbcal's that compiles with :func:`compiler_options` when called (or
     traced, lowered) at top level, and is the plain ``jax.jit`` inside another trace — a user's
     ``jit``, ``vmap`` or ``grad`` around it, which JAX refuses for a program with options.  It
-    has ``jax.jit``'s ``__call__``, ``trace`` and ``lower`` (``jax.export`` takes it)."""
+    has ``jax.jit``'s ``__call__``, ``trace`` and ``lower`` (``jax.export`` takes it); at top
+    level each runs with the garbage collector paused (:func:`mbcal._collector.gc_paused`: a
+    warm call costs a microsecond more)."""
 
     __slots__ = ("_options", "_plain")
 
     def __init__(self, with_options: Any, plain: Any):
         self._options, self._plain = with_options, plain
 
-    def _pick(self) -> Any:
-        return self._options if _top_level() else self._plain
-
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
-        return self._pick()(*args, **kwargs)
+        if not _top_level():
+            return self._plain(*args, **kwargs)
+        with gc_paused():
+            return self._options(*args, **kwargs)
 
     def trace(self, *args: Any, **kwargs: Any) -> Any:
-        return self._pick().trace(*args, **kwargs)
+        if not _top_level():
+            return self._plain.trace(*args, **kwargs)
+        with gc_paused():
+            return self._options.trace(*args, **kwargs)
 
     def lower(self, *args: Any, **kwargs: Any) -> Any:
-        return self._pick().lower(*args, **kwargs)
+        if not _top_level():
+            return self._plain.lower(*args, **kwargs)
+        with gc_paused():
+            return self._options.lower(*args, **kwargs)
 
     def eval_shape(self, *args: Any, **kwargs: Any) -> Any:
         return self._plain.eval_shape(*args, **kwargs)

@@ -416,7 +416,10 @@ def _load_or_export(export: Any, folder: Path, key: str, jitted: Callable, examp
             with contextlib.suppress(OSError):
                 os.utime(path)  # its last use, for trim_programs
     if program is None:
-        program = export.export(jitted)(*example)  # type: ignore[arg-type]  # a jax.jit result; stub wants jax.stages.Wrapped
+        from mbcal._collector import gc_paused
+
+        with gc_paused():  # tracing and lowering: see gc_paused
+            program = export.export(jitted)(*example)  # type: ignore[arg-type]  # a jax.jit result; stub wants jax.stages.Wrapped
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             atomic_write(path, bytes(program.serialize()))
@@ -425,6 +428,7 @@ def _load_or_export(export: Any, folder: Path, key: str, jitted: Callable, examp
             pass  # a read-only cache: still correct, only slower next time
     from mbcal._jax import jit
 
-    # Jitted, so that its executable lives (and dies) with this cache's entry: called eagerly,
-    # an exported program is compiled into JAX's unbounded cache of primitives instead.
+    # Jitted (mbcal's jit: compiled with the collector paused), so that its executable lives (and
+    # dies) with this cache's entry: called eagerly, an exported program is compiled into JAX's
+    # unbounded cache of primitives instead.
     return jit(program.call)

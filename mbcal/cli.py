@@ -32,6 +32,7 @@ if "numpy" not in sys.modules:
 import numpy as np  # noqa: E402
 
 from mbcal import __version__  # noqa: E402
+from mbcal._collector import end_start_up, pause_start_up  # noqa: E402
 from mbcal.cache import CACHE_PARTS, PROGRAM_PARTS, cache_contents, cache_dir, clear_cache, max_part_bytes  # noqa: E402
 from mbcal.errors import MbcalError  # noqa: E402
 from mbcal.outputs import INTERRUPTED, atomic_write, check_output, check_output_folder  # noqa: E402
@@ -676,6 +677,7 @@ def cmd_studio(args: argparse.Namespace) -> int:
     engine = Engine(args.model, args.measurements, photos, args.out)
     if engine.error:
         print(f"mbcal studio: the model has an error (shown in the page too):\n{engine.error['text']}", file=sys.stderr)
+    end_start_up()  # a server waits: collections resume now, not at its first solve (mbcal._collector)
     return serve_forever(engine, args.host, args.port, open_browser=not args.no_browser)
 
 
@@ -1303,6 +1305,7 @@ def cmd_watch(args: argparse.Namespace) -> int:
             f"resumed: {len(manager.history)} updates in {manager.journal}",
             file=sys.stderr if args.json else sys.stdout,
         )
+    end_start_up()  # it may wait long for the first scan: collections resume now (mbcal._collector)
     manager.watch(args.scans, poll=args.poll, once=args.once, report=report)
     return 0
 
@@ -1477,7 +1480,8 @@ def _stop_progress() -> None:
         _ACTIVE_PROGRESS.pop().abort()
 
 
-def entry() -> None:  # pragma: no cover - the console script
+def entry() -> None:  # pragma: no cover - the console script of installs before mbcal.__main__.run
+    pause_start_up()  # no garbage collections while the command starts (mbcal._collector)
     exit_now(main())
 
 

@@ -217,3 +217,82 @@ def test_calibrate_camera_loads_no_plotting_rendering_or_opencv(tmp_path, overla
     assert json.loads((tmp_path / "out.json").read_text())  # it did calibrate
     if overlay:
         assert "PIL" in out["loaded"] and len(list((tmp_path / "overlays").glob("*.png"))) == 1
+
+
+COLLECTOR = """
+import gc, json
+from mbcal._collector import end_start_up, gc_paused, pause_start_up
+seen = {{}}
+{body}
+print(json.dumps(seen))
+"""
+
+
+def collector(body: str) -> dict:
+    proc = python(COLLECTOR.format(body=body))
+    assert proc.returncode == 0, proc.stderr
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def test_the_collector_is_held_while_a_program_compiles_and_given_back_as_it_was():
+    seen = collector(
+        "from mbcal._jax import jit, jnp\n"
+        "def f(x):\n"
+        "    seen['inside'] = gc.isenabled()\n"  # runs while the program is traced
+        "    return x + 1\n"
+        "jit(f)(jnp.ones(3))\n"
+        "seen['after'] = gc.isenabled()\n"
+        "with gc_paused():\n"
+        "    with gc_paused():\n"
+        "        seen['nested'] = gc.isenabled()\n"
+        "    seen['outer'] = gc.isenabled()\n"
+        "seen['left'] = gc.isenabled()\n"
+        "gc.disable()\n"  # a caller's own choice stays
+        "with gc_paused():\n"
+        "    pass\n"
+        "seen['callers'] = gc.isenabled()\n"
+        "seen['frozen'] = gc.get_freeze_count()\n"
+    )
+    assert seen == {
+        "inside": False,
+        "after": True,
+        "nested": False,
+        "outer": False,
+        "left": True,
+        "callers": False,
+        "frozen": 0,
+    }  # a library caller's process is never frozen
+
+
+def test_the_command_lines_start_up_pause_ends_at_its_first_program_with_what_start_up_built_frozen():
+    seen = collector(
+        "pause_start_up()\n"
+        "seen['paused'] = gc.isenabled()\n"
+        "from mbcal._jax import jit, jnp\n"  # start-up: JAX's import, without collections
+        "seen['before'] = gc.get_freeze_count()\n"
+        "def f(x):\n"
+        "    seen['tracing'] = gc.isenabled()\n"
+        "    return x * 2\n"
+        "jit(f)(jnp.ones(3))\n"
+        "seen['after'] = gc.isenabled()\n"
+        "seen['frozen'] = gc.get_freeze_count()\n"
+    )
+    assert seen["paused"] is False and seen["before"] == 0 and seen["tracing"] is False
+    assert seen["after"] is True and seen["frozen"] > 50_000  # JAX's modules: no later collection walks them
+    # A command that waits before any program (the studio's server) ends the pause itself.
+    seen = collector(
+        "pause_start_up()\nend_start_up()\nseen['on'] = gc.isenabled()\nseen['frozen'] = gc.get_freeze_count()\n"
+    )
+    assert seen["on"] is True and seen["frozen"] > 0
+
+
+def test_the_mbcal_command_starts_without_collections():
+    proc = python(
+        "import gc, mbcal.cli\n"
+        "mbcal.cli.entry = lambda: print('collector on' if gc.isenabled() else 'collector paused')\n"
+        "from mbcal.__main__ import run\n"
+        "print('before', gc.isenabled())\n"
+        "run()\n"
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split("\n")[:2] == ["before True", "collector paused"]
