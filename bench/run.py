@@ -177,18 +177,19 @@ t0 = time.perf_counter()
 sys.path.insert(0, {root!r}); sys.path.insert(0, {bench!r})
 import numpy as np
 from run import seed_problem
-from mbcal._jax import jnp
 from mbcal.solver import SolverConfig, _compiled, least_squares
 t1 = time.perf_counter()
 problem, starts = seed_problem({name!r})
 t2 = time.perf_counter()
 out = {{"imports_s": t1 - t0, "setup_s": t2 - t1}}
-args = (jnp.asarray(problem.y), jnp.asarray(problem.params.known))
+# NumPy arguments, as least_squares passes them (jnp.asarray would compile a small program per
+# shape, ~10 ms each, inside the timed trace)
+args = (np.asarray(problem.y), np.asarray(problem.params.known))
 if {split}:
     jitted = _compiled(problem.residual_function, SolverConfig(), problem.n_residuals)
-    a = time.perf_counter(); lowered = jitted.lower(jnp.asarray(starts), args)
+    a = time.perf_counter(); lowered = jitted.lower(starts, args)
     b = time.perf_counter(); compiled = lowered.compile()
-    c = time.perf_counter(); np.asarray(compiled(jnp.asarray(starts), args)[1])
+    c = time.perf_counter(); np.asarray(compiled(starts, args)[1])
     d = time.perf_counter()
     out.update(trace_s=b - a, compile_s=c - b, run_s=d - c)
 else:
@@ -538,7 +539,17 @@ def report(results: dict, path: Path, plot: str | None) -> str:
             "for two Cython modules' tables: they are now loaded from their files",
             "(`mbcal._jax.prepare_lapack`, ~0.02 s; the room's trace + lower 0.60 → 0.53 s, the",
             "arm's 0.73 → 0.48 s from the last stop's run of this page to this stop's first, on a",
-            "machine whose speed wanders: more than the import alone).",
+            "machine whose speed wanders: more than the import alone).  Python's garbage collector,",
+            "set off by tracing's allocations, walked every object of the process (~200,000 once JAX",
+            "is imported) now and then: it is paused while mbcal's programs trace and compile",
+            "(`mbcal._collector.gc_paused`): the room's trace + lower 0.57 → 0.48 s (alternating",
+            "fresh processes; the arm's traces happened to set off no full collection: unchanged).",
+            "What stays: tracing itself, ~0.2 s of it the model's residual through vmap, jacfwd and",
+            "jvp (410 operations in the room's plain residual, ~250 µs each under the three",
+            "transformations, JAX's `jax.numpy` operators being jitted functions of their own; 224",
+            "of them are the frames' 3 × 3 products, written out scalar by scalar because XLA:CPU",
+            "runs them fastest so); and LLVM, ~80 % of XLA's compile CPU (`perf`: its IR passes ~44 %,",
+            "machine code ~34 %; XLA's own HLO passes ~7 %); 2, 4 or 8 LLVM modules: the same.",
             "Tried without gain: `jax.numpy.where` as `lax.select` (it is a jitted function, traced",
             "under vmap and jvp each time: trace unchanged); `xla_backend_optimization_level` 0–1",
             "(compile −0.11 / −0.37 s, the",
