@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import gc
+import os
 import threading
 from collections.abc import Iterator
 
@@ -60,6 +61,21 @@ def end_start_up() -> None:
                 gc.enable()
             else:  # (not reached: the first holder ends the start-up pause) the last holder enables it
                 _state["enabled"] = True
+
+
+def _after_fork_in_child() -> None:
+    """A child forked while a thread of the parent held the pause has no such thread: the pause
+    ends in it (the collector as it was before), with a new lock."""
+    global _LOCK
+    _LOCK = threading.Lock()
+    if _state["held"]:
+        _state["held"] = 0
+        if _state["enabled"]:
+            gc.enable()
+
+
+if hasattr(os, "register_at_fork"):  # not on Windows
+    os.register_at_fork(after_in_child=_after_fork_in_child)
 
 
 @contextlib.contextmanager

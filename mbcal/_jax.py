@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mbcal._collector import gc_paused
+from mbcal._collector import end_start_up, gc_paused
 
 jax.config.update("jax_enable_x64", True)
 
@@ -256,7 +256,8 @@ class _Program:
     ``jit``, ``vmap`` or ``grad`` around it, which JAX refuses for a program with options.  It
     has ``jax.jit``'s ``__call__``, ``trace`` and ``lower`` (``jax.export`` takes it); at top
     level each runs with the garbage collector paused (:func:`mbcal._collector.gc_paused`: a
-    warm call costs a microsecond more)."""
+    warm call costs a microsecond more; not under ``jax.disable_jit``, where nothing compiles);
+    any of them ends the command line's start-up pause."""
 
     __slots__ = ("_options", "_plain")
 
@@ -265,18 +266,24 @@ class _Program:
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
         if not _top_level():
+            end_start_up()
             return self._plain(*args, **kwargs)
+        if getattr(jax.config, "jax_disable_jit", False):  # op by op in Python: no compile, the collector stays
+            end_start_up()
+            return self._options(*args, **kwargs)
         with gc_paused():
             return self._options(*args, **kwargs)
 
     def trace(self, *args: Any, **kwargs: Any) -> Any:
         if not _top_level():
+            end_start_up()
             return self._plain.trace(*args, **kwargs)
         with gc_paused():
             return self._options.trace(*args, **kwargs)
 
     def lower(self, *args: Any, **kwargs: Any) -> Any:
         if not _top_level():
+            end_start_up()
             return self._plain.lower(*args, **kwargs)
         with gc_paused():
             return self._options.lower(*args, **kwargs)

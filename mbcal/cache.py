@@ -268,16 +268,23 @@ def trim_programs(folder: Path | None = None, limit: int | None = None, keep: Pa
         return Cleared(0, 0)
     for part in PROGRAM_PARTS:
         entries: dict[str, list[tuple[Path, int, float]]] = {}
-        try:
-            files = _cache_files(folder, part)
-        except OSError:
+        name = re.compile(CACHE_PARTS[part][1])
+        leftover = re.compile(r"\.(?:" + CACHE_PARTS[part][1] + r")\.[^/]+\.part")
+        try:  # one scan, one stat per file (thousands of entries: ~30 ms)
+            with os.scandir(folder / part) as listing:
+                for item in listing:
+                    if not (name.fullmatch(item.name) or leftover.fullmatch(item.name)):
+                        continue
+                    try:
+                        if not item.is_file(follow_symlinks=False):
+                            continue
+                        st = item.stat(follow_symlinks=False)
+                    except OSError:
+                        continue
+                    used = max(st.st_mtime, st.st_atime)
+                    entries.setdefault(_entry_of(part, item.name), []).append((Path(item.path), st.st_size, used))
+        except OSError:  # no such part yet, or unreadable
             continue
-        for path in files:
-            try:
-                st = path.stat()
-            except OSError:
-                continue
-            entries.setdefault(_entry_of(part, path.name), []).append((path, st.st_size, max(st.st_mtime, st.st_atime)))
         held = sum(size for items in entries.values() for _, size, _ in items)
         if held <= limit:
             continue
@@ -286,7 +293,9 @@ def trim_programs(folder: Path | None = None, limit: int | None = None, keep: Pa
         for items in by_use:
             if held <= _TRIM_TO * limit:
                 break
-            for path, size, _ in items:
+            # JAX's program before its access-time file: JAX's own eviction, when a user turns it
+            # on, reads the access time of every program it finds
+            for path, size, _ in sorted(items, key=lambda item: item[0].name.endswith("-atime")):
                 try:
                     path.unlink()
                 except FileNotFoundError:

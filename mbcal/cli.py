@@ -93,14 +93,15 @@ def _bytes_text(n: int) -> str:
 
 def cmd_cache(args: argparse.Namespace) -> int:
     folder = cache_dir()
+    bound = max_part_bytes() if folder is not None else 0  # a bad MBCAL_CACHE_MAX_MB is said before clearing
     removed = clear_cache(folder, args.clear or None) if folder is not None and args.clear is not None else None
     parts = cache_contents(folder)
-    bound = max_part_bytes()
     problems = [f"{p['folder']}: {p['error']}" for p in parts if "error" in p]
     problems += [] if removed is None else list(removed.problems)
     if args.json:
         report: dict[str, Any] = {"folder": None if folder is None else str(folder), "parts": parts}
-        report["max_part_bytes"] = {part: bound for part in PROGRAM_PARTS}
+        if folder is not None:
+            report["max_part_bytes"] = {part: bound for part in PROGRAM_PARTS}
         if removed is not None:
             report["removed"] = {"files": removed.files, "bytes": removed.bytes, "problems": list(removed.problems)}
         _write_json(report, args.json, [])

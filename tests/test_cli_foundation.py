@@ -93,6 +93,7 @@ def test_check_and_help_do_not_import_jax():
 def test_the_suite_never_writes_into_the_users_cache_folder():
     """tests/conftest.py points the suite (and the commands it starts) at a cache folder of its
     own unless MBCAL_CACHE_DIR names one: thousands of test programs would fill the user's."""
+    import json
     import os
     from pathlib import Path
 
@@ -101,7 +102,7 @@ def test_the_suite_never_writes_into_the_users_cache_folder():
     base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
     assert os.environ.get("MBCAL_CACHE_DIR") and cache_dir() != Path(base) / "mbcal"
     child = run("cache", "--json", "-")
-    assert child.returncode == 0 and f'"folder": "{cache_dir()}"' in child.stdout
+    assert child.returncode == 0 and json.loads(child.stdout)["folder"] == str(cache_dir())
 
 
 def test_the_program_parts_are_kept_under_their_bound_least_recently_used_first(tmp_path, monkeypatch):
@@ -151,6 +152,11 @@ def test_the_program_parts_are_kept_under_their_bound_least_recently_used_first(
         trim_programs()
     bad = run("cache")
     assert bad.returncode == 2 and "MBCAL_CACHE_MAX_MB='lots'" in bad.stderr
+    before = sorted(cache.rglob("*"))
+    assert run("cache", "--clear").returncode == 2 and sorted(cache.rglob("*")) == before  # said before clearing
+    monkeypatch.setenv("MBCAL_CACHE", "off")
+    assert run("cache").returncode == 0  # caching off: the bound does not matter
+    monkeypatch.delenv("MBCAL_CACHE")
     monkeypatch.setenv("MBCAL_CACHE_MAX_MB", "0.5")
     shown = run("cache")
     assert shown.returncode == 0 and "kept under 512.0 kB" in shown.stdout

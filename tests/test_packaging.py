@@ -34,7 +34,8 @@ def test_wheel_contains_the_grammar_and_loads_it(tmp_path):
         capture_output=True,
         text=True,
         cwd=tmp_path,
-        env={"PYTHONPATH": str(tmp_path / "site"), "PATH": "/usr/bin:/bin"},
+        # the suite's cache folder (conftest.py), not the user's
+        env={"PYTHONPATH": str(tmp_path / "site"), "PATH": "/usr/bin:/bin", "MBCAL_CACHE_DIR": str(tmp_path / "cache")},
         timeout=120,
     )
     assert out.returncode == 0, out.stderr

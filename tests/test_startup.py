@@ -264,6 +264,25 @@ def test_the_collector_is_held_while_a_program_compiles_and_given_back_as_it_was
     }  # a library caller's process is never frozen
 
 
+def test_no_pause_under_disable_jit_and_a_forked_child_does_not_inherit_a_pause():
+    seen = collector(
+        "import os\n"
+        "from mbcal._jax import jax, jit, jnp\n"
+        "def f(x):\n"
+        "    seen['op by op'] = gc.isenabled()\n"
+        "    return x + 1\n"
+        "with jax.disable_jit():\n"  # a whole solve would run in Python: the collector stays on
+        "    jit(f)(jnp.ones(3))\n"
+        "with gc_paused():\n"  # as if another thread held it while this one forks
+        "    pid = os.fork()\n"
+        "    if pid == 0:\n"
+        "        os._exit(0 if gc.isenabled() else 1)\n"
+        "    seen['child'] = os.waitpid(pid, 0)[1] == 0\n"
+        "seen['after'] = gc.isenabled()\n"
+    )
+    assert seen == {"op by op": True, "child": True, "after": True}
+
+
 def test_the_command_lines_start_up_pause_ends_at_its_first_program_with_what_start_up_built_frozen():
     seen = collector(
         "pause_start_up()\n"
