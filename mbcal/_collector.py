@@ -57,10 +57,9 @@ def end_start_up() -> None:
     """End :func:`pause_start_up`'s pause now (a long-running command before it waits)."""
     with _LOCK:
         if _end_start_up_locked():
+            _state["enabled"] = True  # for the last holder, if any: the start-up pause is over
             if _state["held"] == 0:
                 gc.enable()
-            else:  # (not reached: the first holder ends the start-up pause) the last holder enables it
-                _state["enabled"] = True
 
 
 def _after_fork_in_child() -> None:

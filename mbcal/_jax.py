@@ -264,29 +264,25 @@ class _Program:
     def __init__(self, with_options: Any, plain: Any):
         self._options, self._plain = with_options, plain
 
-    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+    def _run(self, method: str, /, *args: Any, **kwargs: Any) -> Any:
         if not _top_level():
             end_start_up()
-            return self._plain(*args, **kwargs)
+            return getattr(self._plain, method)(*args, **kwargs)
+        run = getattr(self._options, method)
         if getattr(jax.config, "jax_disable_jit", False):  # op by op in Python: no compile, the collector stays
             end_start_up()
-            return self._options(*args, **kwargs)
+            return run(*args, **kwargs)
         with gc_paused():
-            return self._options(*args, **kwargs)
+            return run(*args, **kwargs)
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        return self._run("__call__", *args, **kwargs)
 
     def trace(self, *args: Any, **kwargs: Any) -> Any:
-        if not _top_level():
-            end_start_up()
-            return self._plain.trace(*args, **kwargs)
-        with gc_paused():
-            return self._options.trace(*args, **kwargs)
+        return self._run("trace", *args, **kwargs)
 
     def lower(self, *args: Any, **kwargs: Any) -> Any:
-        if not _top_level():
-            end_start_up()
-            return self._plain.lower(*args, **kwargs)
-        with gc_paused():
-            return self._options.lower(*args, **kwargs)
+        return self._run("lower", *args, **kwargs)
 
     def eval_shape(self, *args: Any, **kwargs: Any) -> Any:
         return self._plain.eval_shape(*args, **kwargs)

@@ -50,6 +50,7 @@ from typing import Any
 
 import numpy as np
 
+from mbcal._collector import gc_paused
 from mbcal.errors import MbcalError
 from mbcal.outputs import atomic_write
 from mbcal.resources import find_bundled, package_root
@@ -141,18 +142,39 @@ CACHE_PARTS: dict[str, tuple[str, str]] = {
 }
 
 
-def _cache_files(folder: Path, part: str) -> list[Path]:
-    """The files of one part of the cache folder that carry its names (nothing else)."""
+def _cache_files(folder: Path, part: str) -> list[tuple[Path, os.stat_result]]:
+    """The files of one part of the cache folder that carry its names (nothing else: no link, no
+    folder), with their stat, in name order: one scan of the folder, one stat per file (thousands
+    of entries: ~30 ms).  An unreadable folder raises OSError; a missing one holds nothing."""
     name = re.compile(CACHE_PARTS[part][1])
     leftover = re.compile(r"\.(?:" + CACHE_PARTS[part][1] + r")\.[^/]+\.part")
     where = folder / part
     if not where.is_dir():
         return []
-    return sorted(
-        p
-        for p in where.iterdir()
-        if p.is_file() and not p.is_symlink() and (name.fullmatch(p.name) or leftover.fullmatch(p.name))
-    )
+    found = []
+    with os.scandir(where) as listing:
+        for item in listing:
+            if not (name.fullmatch(item.name) or leftover.fullmatch(item.name)):
+                continue
+            try:
+                if item.is_file(follow_symlinks=False):
+                    found.append((Path(item.path), item.stat(follow_symlinks=False)))
+            except OSError:  # removed meanwhile
+                continue
+    return sorted(found, key=lambda file: file[0].name)
+
+
+def _remove(path: Path, problems: list[str]) -> bool:
+    """Remove one cached file: True when this call removed it; one that cannot be removed is said
+    in ``problems``; one already gone (another process) is neither."""
+    try:
+        path.unlink()
+    except FileNotFoundError:
+        return False
+    except OSError as err:
+        problems.append(f"{path}: {err.strerror or err}")
+        return False
+    return True
 
 
 def cache_contents(folder: Path | None = None) -> list[dict[str, Any]]:
@@ -170,7 +192,7 @@ def cache_contents(folder: Path | None = None) -> list[dict[str, Any]]:
         except OSError as err:  # an unreadable folder: said, and the other parts still shown
             entry["error"] = f"{type(err).__name__}: {err.strerror or err}"
         else:
-            entry.update(files=len(files), bytes=sum(_size(p) for p in files))
+            entry.update(files=len(files), bytes=sum(st.st_size for _, st in files))
         out.append(entry)
     return out
 
@@ -204,16 +226,9 @@ def clear_cache(folder: Path | None = None, parts: Sequence[str] | None = None) 
         except OSError as err:
             problems.append(f"{folder / part}: {err.strerror or err}")
             continue
-        for path in files:
-            size = _size(path)
-            try:
-                path.unlink()
-            except FileNotFoundError:
-                continue  # removed by another process meanwhile
-            except OSError as err:
-                problems.append(f"{path}: {err.strerror or err}")
-                continue
-            count, total = count + 1, total + size
+        for path, st in files:
+            if _remove(path, problems):
+                count, total = count + 1, total + st.st_size
     return Cleared(count, total, tuple(problems))
 
 
@@ -268,23 +283,12 @@ def trim_programs(folder: Path | None = None, limit: int | None = None, keep: Pa
         return Cleared(0, 0)
     for part in PROGRAM_PARTS:
         entries: dict[str, list[tuple[Path, int, float]]] = {}
-        name = re.compile(CACHE_PARTS[part][1])
-        leftover = re.compile(r"\.(?:" + CACHE_PARTS[part][1] + r")\.[^/]+\.part")
-        try:  # one scan, one stat per file (thousands of entries: ~30 ms)
-            with os.scandir(folder / part) as listing:
-                for item in listing:
-                    if not (name.fullmatch(item.name) or leftover.fullmatch(item.name)):
-                        continue
-                    try:
-                        if not item.is_file(follow_symlinks=False):
-                            continue
-                        st = item.stat(follow_symlinks=False)
-                    except OSError:
-                        continue
-                    used = max(st.st_mtime, st.st_atime)
-                    entries.setdefault(_entry_of(part, item.name), []).append((Path(item.path), st.st_size, used))
-        except OSError:  # no such part yet, or unreadable
+        try:
+            files = _cache_files(folder, part)
+        except OSError:  # unreadable: nothing to trim there
             continue
+        for path, st in files:
+            entries.setdefault(_entry_of(part, path.name), []).append((path, st.st_size, max(st.st_mtime, st.st_atime)))
         held = sum(size for items in entries.values() for _, size, _ in items)
         if held <= limit:
             continue
@@ -296,24 +300,10 @@ def trim_programs(folder: Path | None = None, limit: int | None = None, keep: Pa
             # JAX's program before its access-time file: JAX's own eviction, when a user turns it
             # on, reads the access time of every program it finds
             for path, size, _ in sorted(items, key=lambda item: item[0].name.endswith("-atime")):
-                try:
-                    path.unlink()
-                except FileNotFoundError:
-                    pass
-                except OSError as err:
-                    problems.append(f"{path}: {err.strerror or err}")
-                    continue
-                else:
+                if _remove(path, problems):
                     count, total = count + 1, total + size
                 held -= size
     return Cleared(count, total, tuple(problems))
-
-
-def _size(path: Path) -> int:
-    try:
-        return path.stat().st_size
-    except OSError:
-        return 0
 
 
 @functools.lru_cache(maxsize=1)
@@ -425,8 +415,6 @@ def _load_or_export(export: Any, folder: Path, key: str, jitted: Callable, examp
             with contextlib.suppress(OSError):
                 os.utime(path)  # its last use, for trim_programs
     if program is None:
-        from mbcal._collector import gc_paused
-
         with gc_paused():  # tracing and lowering: see gc_paused
             program = export.export(jitted)(*example)  # type: ignore[arg-type]  # a jax.jit result; stub wants jax.stages.Wrapped
         try:
