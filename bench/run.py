@@ -556,7 +556,17 @@ def report(results: dict, path: Path, plot: str | None) -> str:
             "arm's solve 1.2× / 2.5× slower), `xla_llvm_disable_expensive_passes`, region analysis",
             "in copy insertion, the 6 × 6 block inverses of the structured solver by LAPACK or by columns; the",
             "dense step without LAPACK (an unrolled or a column-wise Cholesky: lowering −0.11 s, XLA's",
-            "compile +0.28–0.37 s); `jax.lax` primitives for the model's arithmetic (trace +0.03 s).",
+            "compile +0.28–0.37 s); `jax.lax` primitives for the model's arithmetic (trace +0.03 s);",
+            "the frames' products as nested jitted functions, for JAX to reuse their transformed",
+            "traces (trace +0.05 s: each call site met another mix of batched and differentiated",
+            "inputs); `jax.linearize`, or one `jvp` vmapped over the basis, instead of `jacfwd` (trace",
+            "and compile the same); `xla_backend_optimization_level` 2 (compile −0.08 s room, −0.05 s",
+            "arm, but the 13-view `calibrate_cameras` warm call 15 → 23 ms).  LLVM's own options",
+            "`-unroll-threshold=0` and `-enable-misched=false` cut the compile (room 0.71 → 0.55 s,",
+            "arm 0.74 → 0.64 s, warm solves unchanged, alternating fresh processes), but XLA takes LLVM",
+            "options only in its map `xla_backend_extra_options`, which JAX's per-program compiler",
+            "options cannot set (XLA refuses a string for it): only `XLA_FLAGS` can, for every JAX",
+            "program of the process, and mbcal sets options for its own programs only: not taken.",
             "",
         ]
         rows = []
