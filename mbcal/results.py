@@ -529,24 +529,37 @@ def _observability_text(obs, params=None) -> list[str]:
 def _points_text(points, model) -> list[str]:
     if not points:
         return []
-    rows = []
-    for p in points[:40]:
-        rows.append(
-            [
-                model.short_name("point", p.point),
-                p.configuration,
-                model.short_name("camera", p.camera) if p.camera else "—",
-                "∞" if not np.isfinite(p.perpendicular) else f"{1000 * p.perpendicular:.3g}",
-                "∞" if not np.isfinite(p.parallel) else f"{1000 * p.parallel:.3g}",
-            ]
+
+    def mm(sigma: float) -> str:
+        return "∞" if not np.isfinite(sigma) else f"{1000 * sigma:.3g}"
+
+    shown = points[:40]
+    extra = [f"… {len(points) - 40} more points in the JSON report"] if len(points) > 40 else []
+    if not model.cameras:  # no line of sight to split along (with cameras, every point has one)
+        rows = [[model.short_name("point", p.point), p.configuration, mm(p.perpendicular), mm(p.total)] for p in shown]
+        text = table(
+            ["point", "config", "σ max (mm)", "σ total (mm)"],
+            rows,
+            align="llrr",
+            title="\nposition uncertainty of the points (no camera: the largest σ in any direction, and √trace):",
         )
+        return [text, *extra]
+    rows = [
+        [
+            model.short_name("point", p.point),
+            p.configuration,
+            model.short_name("camera", p.camera) if p.camera else "—",
+            mm(p.perpendicular),
+            mm(p.parallel),
+        ]
+        for p in shown
+    ]
     text = table(
         ["point", "config", "line of sight", "σ⟂ (mm)", "σ∥ (mm)"],
         rows,
         align="lllrr",
         title="\nposition uncertainty of the points (⟂ and ∥ to the camera's line of sight):",
     )
-    extra = [f"… {len(points) - 40} more points in the JSON report"] if len(points) > 40 else []
     return [text, *extra]
 
 

@@ -367,3 +367,36 @@ def test_point_uncertainties_from_block_jacobians_equal_the_dense_ones():
         np.testing.assert_allclose(b.covariance, d.covariance, rtol=1e-9, atol=1e-22)
         np.testing.assert_allclose(p.covariance, d.covariance, rtol=1e-9, atol=1e-22)  # what the report holds
         np.testing.assert_allclose(b.position, d.position, rtol=0, atol=1e-12)
+
+
+def test_a_problem_without_cameras_reports_its_points_largest_sigma_not_an_infinite_one_along_no_line_of_sight():
+    # 3-D measurements only (a robot's link origins, a CMM): no camera, no line of sight to split the
+    # uncertainty along; the report gave σ∥ = ∞ for every point of a well determined fit.
+    model = mbcal.load_model_text(
+        "param a = 1 m in [0 m, 2 m]\nparam b = 0.2 m in [0 m, 1 m]\npoint p = (a, b, 0)\npoint q = (a, 0, b)\n"
+        "measure point3d"
+    )
+    plan = mbcal.measurements_from_records(
+        [{"kind": "point3d", "point": name, "sigma": 0.01} for name in ("p", "q")], model
+    )
+    data = mbcal.simulate(model, plan, {"a": 1.1, "b": 0.25}, noise=1.0, seed=0)
+    result = mbcal.calibrate(model, data, ["a", "b"], restarts=2)
+    assert result.converged and all(p.camera is None for p in result.points)
+    text = result.summary()
+    section = text.split("position uncertainty of the points")[1].split("\n\n")[0]
+    assert "no camera: the largest σ in any direction" in section
+    assert "∞" not in section and "line of sight" not in section.splitlines()[1]
+    for p in result.points:
+        assert np.isfinite(p.perpendicular) and np.isnan(p.parallel)
+        assert f"{1000 * p.perpendicular:.3g}" in section
+    (row,) = [line for line in section.splitlines() if line.startswith("p ")]
+    assert row.split()[-2] == f"{1000 * result.points[0].perpendicular:.3g}"
+    assert row.split()[-1] == f"{1000 * result.points[0].total:.3g}"
+
+
+def test_the_model_summary_counts_in_the_singular_and_the_plural():
+    from mbcal.language.summary import model_summary
+
+    model = mbcal.load_model_text("camera c(width = 8, height = 6, f = 4)\npoint p = (0, 0, 1)\npoint q = (0, 1, 1)")
+    counts = model_summary(model).splitlines()[1]
+    assert "1 camera," in counts and "2 points" in counts and "0 range sensors" in counts and "0 shapes" in counts

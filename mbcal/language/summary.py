@@ -28,14 +28,26 @@ def _limits(info) -> str:
     return f"[{lo}, {hi}] {info.unit}".rstrip()
 
 
+def _count(n: int, noun: str) -> str:
+    """``1 camera``, ``2 cameras``, ``0 cameras``."""
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
+
+
 def model_summary(model: Model) -> str:
     """Parameters, frames, points, sensors and shapes of a model, as text."""
     out = [f"model {model.path}"]
     if len(model.files) > 1:
         out.append("includes " + ", ".join(model.files[1:]))
-    counts = (
-        f"{len(model.params)} parameters, {len(model.frames)} frames, {len(model.points)} points, "
-        f"{len(model.cameras)} cameras, {len(model.ranges)} range sensors, {len(model.shapes)} shapes"
+    counts = ", ".join(
+        _count(len(items), noun)
+        for items, noun in (
+            (model.params, "parameter"),
+            (model.frames, "frame"),
+            (model.points, "point"),
+            (model.cameras, "camera"),
+            (model.ranges, "range sensor"),
+            (model.shapes, "shape"),
+        )
     )
     out.append(counts)
     rows: list[list[Any]]
