@@ -35,7 +35,7 @@ from mbcal import __version__  # noqa: E402
 from mbcal._collector import end_start_up, pause_start_up  # noqa: E402
 from mbcal.cache import CACHE_PARTS, PROGRAM_PARTS, cache_contents, cache_dir, clear_cache, max_part_bytes  # noqa: E402
 from mbcal.errors import MbcalError  # noqa: E402
-from mbcal.outputs import INTERRUPTED, atomic_write, check_output, check_output_folder  # noqa: E402
+from mbcal.outputs import INTERRUPTED, atomic_write, check_output, check_output_folder, finite_or_null  # noqa: E402
 from mbcal.text import table  # noqa: E402
 from mbcal.units import LENGTH, UNITS, describe, to_display  # noqa: E402
 
@@ -298,18 +298,6 @@ def _estimate(model, patterns):
             "(no parameter of the model has a search range to take by default)"
         )
     return ranged
-
-
-def _finite_or_null(data: Any) -> Any:
-    """``data`` with every non-finite number (an unobservable σ, a χ² without degrees of freedom)
-    replaced by None: JSON has no inf or NaN."""
-    if isinstance(data, dict):
-        return {k: _finite_or_null(v) for k, v in data.items()}
-    if isinstance(data, (list, tuple)):
-        return [_finite_or_null(v) for v in data]
-    if isinstance(data, float) and not math.isfinite(data):
-        return None
-    return data
 
 
 def _write_json(data, target: str, inputs) -> None:
@@ -1289,7 +1277,7 @@ def cmd_watch(args: argparse.Namespace) -> int:
 
     def report(u) -> None:
         if args.json:  # one strict JSON object per line (JSON has no inf or NaN: null)
-            print(json.dumps(_finite_or_null(u.to_json()), allow_nan=False), flush=True)
+            print(json.dumps(finite_or_null(u.to_json()), allow_nan=False), flush=True)
             return
         if args.quiet:
             return

@@ -12,16 +12,30 @@ command reads.
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import stat
 import tempfile
 import threading
 from collections.abc import Iterable, Iterator
 from pathlib import Path
+from typing import Any
 
 from mbcal.errors import OutputError
 
-__all__ = ["atomic_write", "atomic_writer", "check_output", "current_umask", "OutputError"]
+__all__ = ["atomic_write", "atomic_writer", "check_output", "current_umask", "finite_or_null", "OutputError"]
+
+
+def finite_or_null(data: Any) -> Any:
+    """``data`` with every non-finite number (an unobservable σ, a χ² without degrees of freedom)
+    replaced by None, in nested dicts, lists and tuples: JSON has no inf or NaN."""
+    if isinstance(data, dict):
+        return {k: finite_or_null(v) for k, v in data.items()}
+    if isinstance(data, (list, tuple)):
+        return [finite_or_null(v) for v in data]
+    if isinstance(data, float) and not math.isfinite(data):
+        return None
+    return data
 
 
 def current_umask() -> int:

@@ -167,9 +167,11 @@ def test_an_unreadable_scan_is_journalled_and_the_watch_goes_on(tmp_path):
     assert manager.watch(scans, once=True, report=seen.append) == 2
     bad, good = seen
     assert not bad.accepted and "scan_0001.png" in bad.error and "cannot read" in bad.error
+    assert np.isnan(bad.chi2) and np.isnan(bad.reduced_chi2)  # nothing was fitted: not a perfect fit of 0
     assert good.accepted and not good.error and abs(good.values["room.x"] - 0.01) < 3 * good.std["room.x"]
     journal = _journal(out)
     assert [bool(e["error"]) for e in journal] == [True, False]
+    assert journal[0]["chi2"] is None and journal[0]["reduced_chi2"] is None
     # A restart skips both: the good one was taken, the bad one has not changed.
     again = ModelManager(model_path, out, ["room.x", "room.y", "room.z", "room.yaw"])
     assert again.watch(scans, once=True) == 0
@@ -214,9 +216,9 @@ def test_watch_json_prints_one_strict_json_object_per_update(tmp_path, capsys):
     assert captured.out == "" and "resumed: 2 updates" in captured.err
     assert "update 1 (REJECTED" not in captured.out
     # non-finite numbers become null
-    from mbcal.cli import _finite_or_null
+    from mbcal.outputs import finite_or_null
 
-    assert _finite_or_null({"a": [float("inf"), 1.0], "b": float("nan"), "c": "x"}) == {
+    assert finite_or_null({"a": [float("inf"), 1.0], "b": float("nan"), "c": "x"}) == {
         "a": [None, 1.0],
         "b": None,
         "c": "x",
@@ -229,3 +231,16 @@ def test_process_noise_must_name_an_estimated_unknown(tmp_path):
         ModelManager(model_path, tmp_path / "out", ["room.*"], process_noise={"lever.angle": 0.1})
     with pytest.raises(mbcal.MbcalError, match="finite σ ≥ 0"):
         ModelManager(model_path, tmp_path / "out", ["room.*"], process_noise={"room.yaw": -1.0})
+
+
+def test_an_update_with_an_undetermined_unknown_is_strict_json_and_reads_back_infinite():
+    """The journal is JSON lines: an infinite σ (an unknown no scan determines) and the χ² of an
+    unreadable scan are null in it (json.dumps wrote Infinity and NaN, which other readers refuse),
+    and read back as ∞ and NaN."""
+    from mbcal.range.manager import Update
+
+    u = Update(1, 0.0, {"a": 1.0, "b": 2.0}, {"a": 0.1, "b": float("inf")}, float("nan"), float("nan"), 0, 0, False)
+    text = json.dumps(u.to_json(), allow_nan=False)
+    back = Update.from_json(json.loads(text))
+    assert back.std == {"a": 0.1, "b": float("inf")} and np.isnan(back.chi2) and np.isnan(back.reduced_chi2)
+    assert back.values == u.values and not back.accepted

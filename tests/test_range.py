@@ -361,3 +361,40 @@ def test_scan_residual_jacobian_matches_finite_differences():
         e[j] = h
         np.testing.assert_allclose(J[:, j], (residual(x + e) - residual(x - e)) / (2 * h), rtol=1e-4, atol=1e-4 * 500)
     assert np.abs(J).max() > 1.0  # the residual does depend on the unknowns
+
+
+SPHERE_SPIN = """param ball.x = 0 m in [-0.1 m, 0.1 m]
+param ball.spin = 0 deg in [-10 deg, 10 deg]
+object ball at (ball.x, 0, 1 m) * rot_z(ball.spin) {
+  shape s = sphere(10 cm)
+}
+"""
+
+
+def test_a_scan_fit_with_an_undetermined_unknown_writes_strict_json_and_exits_1(tmp_path, capsys):
+    """A sphere's spin about its axis moves none of its surface: its σ is ∞.  `mbcal fit --json`
+    raised ValueError on it (JSON has no ∞) and MODEL.fit.json held `Infinity`; now σ is null there,
+    the text says unobservable, and the exit status is 1."""
+    model = tmp_path / "ball.mdl"
+    model.write_text(SPHERE_SPIN)
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(400, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    write_xyz(tmp_path / "ball.xyz", d * 0.1 + np.array([0.01, 0.0, 1.0]))
+    out = tmp_path / "out"
+    argv = ["fit", str(model), str(tmp_path / "ball.xyz"), "--estimate", "ball.*", "--sigma", "0.001"]
+
+    def strict(text):
+        def refuse(token):
+            raise AssertionError(f"{token} is not JSON")
+
+        return json.loads(text, parse_constant=refuse)
+
+    assert main([*argv, "--json", "-", "--out", str(out)]) == 1
+    captured = capsys.readouterr()
+    report = strict(captured.out)
+    assert report["std"]["ball.spin"] is None and report["std"]["ball.x"] > 0 and not report["ok"]
+    assert report["unobservable"] and "ball.spin" in report["unobservable"][0]
+    assert abs(report["values"]["ball.x"] - 0.01) < 4 * report["std"]["ball.x"]
+    assert strict((out / "ball.fit.json").read_text())["std"] == report["std"]
+    assert "∞ (unobservable)" in captured.err and "NOT trustworthy" in captured.err

@@ -58,6 +58,7 @@ from mbcal.geometry.raycast import distance_to_shapes, surface_distance
 from mbcal.language.model import Model
 from mbcal.measurements.sets import MeasurementSet
 from mbcal.modeling import Needs, modeler
+from mbcal.outputs import finite_or_null
 from mbcal.params import ParameterSet
 from mbcal.range.scans import Scan
 from mbcal.solver import Loss, SolverConfig, least_squares, random_starts
@@ -254,7 +255,8 @@ class ScanFit:
         for i, n in enumerate(self.names):
             unit = self.units.get(n, "")
             f = np.degrees if unit == "deg" else (lambda v: v)
-            rows.append([n, f"{f(self.x_start[i]):.6g}", f"{f(self.x[i]):.6g}", f"{f(std[n]):.3g}", unit])
+            sigma = f"{f(std[n]):.3g}" if np.isfinite(std[n]) else "∞ (unobservable)"
+            rows.append([n, f"{f(self.x_start[i]):.6g}", f"{f(self.x[i]):.6g}", sigma, unit])
         lines.append(table(["unknown", "start", "estimate", "σ", "unit"], rows))
         lines.append(
             f"inliers: reduced χ² {self.reduced_chi2:.3g} (dof {self.dof}); outliers (on no modelled surface): "
@@ -275,35 +277,39 @@ class ScanFit:
 
     def to_json(self) -> dict[str, Any]:
         """The fit for machines (``MODEL.fit.json``, ``mbcal fit --json``): values and σ in SI
-        units, named in ``units``; mbcal/schemas/scan_fit.schema.json describes every field."""
+        units, named in ``units``; mbcal/schemas/scan_fit.schema.json describes every field.  JSON
+        has no ∞: the σ of an unknown the scans do not determine (named in ``unobservable``) is
+        null."""
         std = self.std
-        return {
-            "format": SCAN_FIT_FORMAT,
-            "values": self.values,
-            "std": std,
-            "units": {n: _SI_UNIT.get(self.units.get(n, ""), self.units.get(n, "")) for n in self.names},
-            "chi2": self.chi2,
-            "dof": self.dof,
-            "reduced_chi2": self.reduced_chi2,
-            "points": len(self.points),
-            "total_points": self.total_points,
-            "cropped": self.cropped,
-            "outliers": {
-                "count": self.n_outliers,
-                "fraction": self.outlier_fraction,
+        return finite_or_null(
+            {
+                "format": SCAN_FIT_FORMAT,
+                "values": self.values,
+                "std": std,
+                "units": {n: _SI_UNIT.get(self.units.get(n, ""), self.units.get(n, "")) for n in self.names},
+                "chi2": self.chi2,
+                "dof": self.dof,
+                "reduced_chi2": self.reduced_chi2,
+                "points": len(self.points),
+                "total_points": self.total_points,
                 "cropped": self.cropped,
-                "beyond_sigma": int(self.outlier.sum()),
-            },
-            "structural_misfits": [m.object for m in self.structural],
-            "objects": [
-                {"object": m.object, "points": m.points, "beyond": m.beyond, "rms": m.rms, "flagged": m.flagged}
-                for m in self.misfits
-            ],
-            "unobservable": self.unobservable,
-            "converged": self.converged,
-            "ok": self.ok,
-            "elapsed": self.elapsed,
-        }
+                "outliers": {
+                    "count": self.n_outliers,
+                    "fraction": self.outlier_fraction,
+                    "cropped": self.cropped,
+                    "beyond_sigma": int(self.outlier.sum()),
+                },
+                "structural_misfits": [m.object for m in self.structural],
+                "objects": [
+                    {"object": m.object, "points": m.points, "beyond": m.beyond, "rms": m.rms, "flagged": m.flagged}
+                    for m in self.misfits
+                ],
+                "unobservable": self.unobservable,
+                "converged": self.converged,
+                "ok": self.ok,
+                "elapsed": self.elapsed,
+            }
+        )
 
 
 # ---- the compiled functions, one set per problem structure -------------------------------------------------

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import fnmatch
 import json
+import math
 import os
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -36,7 +37,7 @@ from mbcal.errors import MbcalError, OutputError
 from mbcal.export.mdl import write_calibrated_model
 from mbcal.language.load import load_model
 from mbcal.language.model import Model
-from mbcal.outputs import atomic_write
+from mbcal.outputs import atomic_write, finite_or_null
 from mbcal.range.fit import FitOptions, Prior, ScanFit, fit_scans
 from mbcal.range.readers import CLOUD_SUFFIXES, DEPTH_SUFFIXES, write_ply
 from mbcal.range.scans import Scan, load_scan
@@ -71,11 +72,19 @@ class Update:
     """Size and modification time (ns) of an unreadable file: it is tried again once it changes."""
 
     def to_json(self) -> dict[str, Any]:
-        return dict(self.__dict__)
+        """The update as strict JSON: a σ that is infinite (an unknown no scan determines) and the
+        χ² of a rejected update without a fit (NaN) are null."""
+        return finite_or_null(dict(self.__dict__))
 
     @staticmethod
     def from_json(d: Mapping[str, Any]) -> Update:
-        return Update(**{k: d[k] for k in Update.__dataclass_fields__ if k in d})
+        fields = {k: d[k] for k in Update.__dataclass_fields__ if k in d}
+        if "std" in fields:  # null: infinite (see to_json)
+            fields["std"] = {k: math.inf if v is None else v for k, v in fields["std"].items()}
+        for name in ("chi2", "reduced_chi2"):
+            if name in fields and fields[name] is None:
+                fields[name] = math.nan
+        return Update(**fields)
 
 
 def _outputs(fit: ScanFit, model: Model, out: Path, stem: str, note: Sequence[str]) -> list[Path]:
@@ -88,7 +97,7 @@ def _outputs(fit: ScanFit, model: Model, out: Path, stem: str, note: Sequence[st
     write_ply(ply, fit.outlier_points, np.tile(np.array([[230, 40, 40]], dtype=np.uint8), (fit.n_outliers, 1)))
     written.append(ply)
     rep = out / f"{stem}.fit.json"
-    atomic_write(rep, json.dumps(fit.to_json(), indent=2) + "\n")
+    atomic_write(rep, json.dumps(fit.to_json(), indent=2, allow_nan=False) + "\n")
     written.append(rep)
     return written
 
@@ -232,7 +241,7 @@ class ModelManager:
         return None
 
     def _append(self, update: Update) -> None:
-        line = (json.dumps(update.to_json()) + "\n").encode("utf-8")
+        line = (json.dumps(update.to_json(), allow_nan=False) + "\n").encode("utf-8")
         fd = os.open(self.journal, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
         try:
             os.write(fd, line)
@@ -242,7 +251,7 @@ class ModelManager:
 
     def _write_state(self, u: Update) -> None:
         snap = {"seq": u.seq, "values": u.values, "std": u.std, "mean": u.mean, "information": u.information}
-        atomic_write(self.out / self.SNAPSHOT, json.dumps(snap) + "\n")
+        atomic_write(self.out / self.SNAPSHOT, json.dumps(finite_or_null(snap), allow_nan=False) + "\n")
         stamp = time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(u.time))
         note = [f"kept by the model manager: update {u.seq} of {stamp} UTC"]
         write_calibrated_model(self.model, u.values, self.model_out, std=u.std, note=note)
@@ -326,8 +335,8 @@ class ModelManager:
             time=time.time(),
             values=dict(last.values) if last is not None else {},
             std=dict(last.std) if last is not None else {},
-            chi2=0.0,
-            reduced_chi2=0.0,
+            chi2=math.nan,  # nothing was fitted
+            reduced_chi2=math.nan,
             points=0,
             outliers=0,
             accepted=False,
