@@ -95,7 +95,9 @@ class CalibrateOptions:
     priors: bool = True
     """Use the model's prior σ of the unknowns."""
     scale_covariance: bool = False
-    """Multiply the covariance by the reduced χ² (when the σ of the measurements are not trusted)."""
+    """Multiply the covariance by the reduced χ² (when the σ of the measurements are not trusted).
+    Not done without redundancy (no more residuals than unknowns: the residuals then say nothing
+    about the noise); the result's ``run.scale_covariance`` says whether it was."""
     points: Sequence[str] | None = None
     """Points whose uncertainty to report (default: every measured point)."""
     camera: str | None = None
@@ -480,7 +482,13 @@ def calibrate(
     say("analysing observability")
     cost = solved.cost_best
     m_rows = problem.n_residuals
-    provisional_dof = max(m_rows - params.size, 1)
+    provisional_dof = m_rows - params.size
+    if scale_covariance and provisional_dof <= 0:
+        # No redundancy: the residuals say nothing about the noise's scale (S is ~0 at an exact
+        # fit, and scaling by it shrank every σ to ~0 under a "well determined" verdict).  The
+        # stated σ stand, and the run records that nothing was scaled.
+        scale_covariance = False
+        o = o.updated({"scale_covariance": False})
     chi2 = cost / provisional_dof if scale_covariance else 1.0
     if _analysed_by_blocks(structure, o.analysis):
         assert structure is not None

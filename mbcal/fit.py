@@ -322,9 +322,9 @@ class FitVerdict:
         """One line: consistent or not, with S, dof and p."""
         if self.chi2 is None:
             return "no measured values: the fit is not tested"
-        if self.p_value is None:
-            return f"S = {self.chi2:.6g} with no redundancy (0 degrees of freedom): the fit cannot be tested"
         aside = f" after setting aside {len(self.set_aside)} outlier(s)" if self.set_aside else ""
+        if self.p_value is None:
+            return f"S = {self.chi2:.6g} with no redundancy{aside} (0 degrees of freedom): the fit cannot be tested"
         what = "consistent with the stated σ" if self.consistent else "INCONSISTENT with the stated σ"
         rel = "≥" if self.p_value >= self.threshold else "<"
         shown = f"{self.p_value:.3g}" if self.p_value > 0 else "0 (below 1e-300)"
@@ -372,7 +372,7 @@ class FitVerdict:
     def verdict(self) -> str:
         """One phrase: trustworthy or not, and why."""
         if self.trustworthy:
-            return "consistent and well determined" if self.chi2 is not None else "well determined"
+            return "consistent and well determined" if self.tested else "well determined (the fit is not tested)"
         why = []
         if not self.determined:
             why.append(self._undetermined_text())
@@ -782,7 +782,8 @@ def assess_fit(
     rest[outliers] = False
     rest[list(attributed)] = False
     lin_rest = linear(rest)
-    p_rest = float(stats.chi2.sf(lin_rest.S, lin_rest.dof)) if lin_rest.dof > 0 else 1.0
+    # None: what is left has no redundancy to test (every degree of freedom went to what was set aside)
+    p_rest = float(stats.chi2.sf(lin_rest.S, lin_rest.dof)) if lin_rest.dof > 0 else None
 
     suspects: list[Suspect] = []
     if outliers:
@@ -817,7 +818,7 @@ def assess_fit(
                 "dimensions, its pose and the points on it",
             )
         )
-    if p_rest < alpha:
+    if p_rest is not None and p_rest < alpha:
         factor = float(np.sqrt(lin_rest.S / lin_rest.dof))
         others = " the rest:" if outliers or structural else ""
         suspects.append(
@@ -842,7 +843,7 @@ def assess_fit(
         chi2_rest = lin_rest.S if aside or structural else S
         dof_rest = lin_rest.dof if aside or structural else dof
         p_shown = p_rest if aside or structural else p
-        consistent = not structural and p_shown >= alpha
+        consistent = not structural and (p_shown is None or p_shown >= alpha)  # None: nothing left to test
         suspects = [s for s in suspects if s.kind != "outliers" or not consistent]
         if aside:
             notes.append(f"the {str(loss)} loss sets aside {len(aside)} outlier(s): {', '.join(aside[:10])}")

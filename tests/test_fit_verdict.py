@@ -383,3 +383,25 @@ def test_an_unobservable_plan_is_not_well_determined_in_the_verdict(lever, capsy
     fit = report["fit"]
     assert not fit["well_determined"] and not fit["ok"] and fit["condition_number"] is None
     assert "verdict: NOT trustworthy: not observable (rank 5 of 6)" in text and "verdict: well determined" not in text
+
+
+def test_a_fit_without_redundancy_is_not_called_consistent_and_its_sigma_is_not_scaled_to_zero():
+    """One 3-D point for three unknowns: an exact fit (S ≈ 0, no degree of freedom).  The verdict
+    said "consistent and well determined" under a headline that said the fit cannot be tested, and
+    scaling the covariance by S/1 shrank every σ to ~1e-12 m."""
+    model = mbcal.load_model_text(
+        "param a = 1 m in [0 m, 2 m]\nparam b = 0 m in [-1 m, 1 m]\nparam c = 0 m in [-1 m, 1 m]\n"
+        "point p = (a, b, c)\nmeasure point3d"
+    )
+    plan = mbcal.measurements_from_records([{"kind": "point3d", "point": "p", "sigma": 0.01}], model)
+    data = mbcal.simulate(model, plan, {"a": 1.1, "b": 0.2, "c": -0.1}, noise=1.0, seed=0)
+    plain = mbcal.calibrate(model, data, ["a", "b", "c"], restarts=2)
+    scaled = mbcal.calibrate(model, data, ["a", "b", "c"], restarts=2, scale_covariance=True)
+    for result in (plain, scaled):
+        assert not result.verdict.tested and result.verdict.dof == 0
+        assert result.verdict.verdict() == "well determined (the fit is not tested)"
+        assert "cannot be tested" in result.summary() and "consistent and well determined" not in result.summary()
+        for name in ("a", "b", "c"):
+            assert result.std[name] == pytest.approx(0.01, rel=1e-6)  # the stated σ: one point, one σ per axis
+    assert not scaled.run.scale_covariance  # asked for, not done: nothing to scale by
+    assert mbcal.calibrate(model, data, ["a", "b"], restarts=2, scale_covariance=True).run.scale_covariance
