@@ -17,6 +17,7 @@ from mbcal.workflows.cameras import (
     intrinsics_from_homographies,
     plan_views,
     pose_from_homography,
+    simulate_views,
     synthesize_images,
 )
 from mbcal.workflows.detect import detect_images
@@ -305,3 +306,31 @@ def test_auto_restarts_add_random_starts_only_when_zhangs_start_gives_a_doubtful
 
     explicit = calibrate_cameras(model, data, restarts=2)
     assert len(explicit.result.solver.cost) == 2 and explicit.result.run.note == ""
+
+
+def test_the_camera_table_tells_a_fixed_intrinsic_from_one_the_views_do_not_determine(tmp_path):
+    """σ None is a fixed intrinsic, σ = ∞ an estimated one the views do not determine: both were
+    shown as 'fixed' (and null in the JSON, with nothing to tell them apart); one held at its hard
+    limit showed σ 0 without saying why."""
+    import dataclasses
+
+    text = (MODELS / "camera_calibration.mdl").read_text()
+    assert "param cam.k1 = 0 in [-1, 1]\n" in text
+    path = tmp_path / "k1_limited.mdl"  # k1 may not go below 0: the true -0.2 holds it at that limit
+    path.write_text(text.replace("param cam.k1 = 0 in [-1, 1]\n", "param cam.k1 = 0 in [0, 1] bounded\n"))
+    model = mbcal.load_model(path)
+    data, _ = simulate_views(model, 6, {"cam.fx": 810.0, "cam.k1": -0.2}, seed=0, sigma=0.3)
+    cc = calibrate_cameras(model, data)
+    assert "cam.k1" in cc.result.observability.active_bounds
+    cam = cc.intrinsics["cam"]
+    assert cam["skew"] == (0.0, None)  # not a parameter of the model: fixed
+    assert all(s is not None and np.isfinite(s) for k, (_, s) in cam.items() if k != "skew")
+    shown = dataclasses.replace(cc, intrinsics={"cam": {**cam, "k3": (cam["k3"][0], float("inf"))}})
+    table = shown.summary().split("per view:")[0]
+    rows = {line.split()[0]: line for line in table.splitlines()[3:] if line.strip()}
+    assert rows["skew"].endswith("fixed") and rows["k3"].endswith("∞ (unobservable)")
+    assert rows["k1"].endswith("0 (at bound)") and rows["fx"].split()[-1] == f"{cam['fx'][1]:.3g}"
+    cameras = json.loads(json.dumps(shown.to_json(), allow_nan=False))["cameras"]["cam"]
+    assert cameras["skew"] == {"value": 0.0, "std": None, "estimated": False}
+    assert cameras["k3"]["std"] is None and cameras["k3"]["estimated"] is True
+    assert cameras["fx"]["std"] == pytest.approx(cam["fx"][1]) and cameras["fx"]["estimated"] is True

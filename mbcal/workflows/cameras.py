@@ -437,6 +437,8 @@ class CameraCalibration:
     initial: dict[str, float]
     cameras: list[str]
     intrinsics: dict[str, dict[str, tuple[float, float | None]]] = field(default_factory=dict)
+    """Per camera, per intrinsic (``fx`` … ``k3``): (value, σ); σ None when the intrinsic is fixed,
+    ∞ when it is estimated but the views do not determine it."""
     views: list[dict[str, Any]] = field(default_factory=list)
     rms: float = float("nan")
 
@@ -446,8 +448,13 @@ class CameraCalibration:
 
     def to_json(self) -> dict[str, Any]:
         data = self.result.to_json()
+        # std null: fixed (estimated false) or not determined by the views (estimated true, σ = ∞)
         data["cameras"] = {
-            cam: {k: {"value": v, "std": s} for k, (v, s) in values.items()} for cam, values in self.intrinsics.items()
+            cam: {
+                k: {"value": v, "std": None if s is None or not np.isfinite(s) else s, "estimated": s is not None}
+                for k, (v, s) in values.items()
+            }
+            for cam, values in self.intrinsics.items()
         }
         data["views"] = self.views
         data["rms_reprojection"] = self.rms
@@ -459,8 +466,19 @@ class CameraCalibration:
             f"camera calibration: {len(self.views)} views, "
             f"{sum(v['points'] for v in self.views)} points, RMS reprojection error {self.rms:.4f} px"
         ]
+        at_bound = set(self.result.observability.active_bounds)
         for cam, values in self.intrinsics.items():
-            rows = [[k, fmt(v, 8), "fixed" if s is None else fmt(s, 3)] for k, (v, s) in values.items()]
+            info = model.cameras[model.camera_index(cam)]
+            names = [_param(node) for node in info.intrinsics + info.distortion]
+
+            def sigma(s: float | None, name: str | None) -> str:
+                if s is None:
+                    return "fixed"
+                if name in at_bound:
+                    return "0 (at bound)"
+                return fmt(s, 3) if np.isfinite(s) else "∞ (unobservable)"
+
+            rows = [[k, fmt(v, 8), sigma(s, name)] for (k, (v, s)), name in zip(values.items(), names)]
             out.append("")
             out.append(table(["", "value", "σ"], rows, align="lrr", title=f"camera {model.short_name('camera', cam)}:"))
         rows = [
@@ -580,7 +598,7 @@ def calibrate_cameras(
             name = _param(node)
             v = float(ir.evaluate(node, X, {}, np))
             s = std.get(name) if name is not None and name in values else None
-            entry[label] = (v, None if s is None or not np.isfinite(s) else float(s))
+            entry[label] = (v, None if s is None else float(s))  # None: fixed; ∞: estimated, not determined
         intrinsics[cam] = entry
     views = []
     rms = float("nan")
