@@ -298,7 +298,15 @@ class CalibrationResult:
             note.append("NOT A TRUSTWORTHY FIT" + (": " + "; ".join(why) if why else ""))
             if self.verdict is not None:
                 note.append(f"verdict: {self.verdict.verdict()}")
-        write_calibrated_model(self.problem.model, self.values, path, std=self.std, note=note, overwrite=overwrite)
+        write_calibrated_model(
+            self.problem.model,
+            self.values,
+            path,
+            std=self.std,
+            note=note,
+            overwrite=overwrite,
+            at_bound=self.observability.active_bounds,
+        )
 
 
 @dataclass
@@ -563,6 +571,10 @@ def _points_text(points, model) -> list[str]:
     return [text, *extra]
 
 
+# The unit an RMS residual is shown in, by the measurement kind's value dimension (SI values).
+_RMS_UNITS = {"pixel": "px", "length": "m", "angle": "rad"}
+
+
 def _roles(kind: str):
     return get_model(kind).roles
 
@@ -584,11 +596,18 @@ def result_text(r: CalibrationResult, *, max_residuals: int = 15) -> str:
     # "converged: converged: ..." said it twice: the status's message starts with its verdict
     out.append(message if r.converged and message.startswith("converged:") else f"{head}: {message}")
     rms = ", ".join(
-        f"{k} {v:.4g} {'px' if k == 'image_point' else ('rad' if k == 'angle' else 'm')}" for k, v in r.rms.items()
+        f"{k} {v:.4g} {_RMS_UNITS.get(get_model(k).value_dimension, '')}".rstrip() for k, v in r.rms.items()
     )
+    loss = str(r.solver.config.loss)
+    if loss == "linear":
+        cost = f"S = {r.cost:.6g}"
+        per_dof = f"reduced χ² = {fmt(r.reduced_chi2, 4)}"
+    else:  # the robust cost is not a χ² (the fit verdict below tests the plain squares)
+        cost = f"S = Σρ(r²) = {r.cost:.6g} ({loss} loss)"
+        per_dof = f"Σρ/dof = {fmt(r.reduced_chi2, 4)}"
     out.append(
-        f"S = {r.cost:.6g} over {r.problem.n_residuals} residuals ({len(r.problem.measurements)} measurements); "
-        f"reduced χ² = {fmt(r.reduced_chi2, 4)}; RMS: {rms}"
+        f"{cost} over {r.problem.n_residuals} residuals ({len(r.problem.measurements)} measurements); "
+        f"{per_dof}; RMS: {rms}"
     )
     rows = []
     for i, name in enumerate(r.names):

@@ -283,3 +283,23 @@ def test_an_unreached_limit_changes_nothing(room, limited_room):
     for name, value in free.values.items():
         assert limited.values[name] == pytest.approx(value, abs=1e-7)
         assert limited.std[name] == pytest.approx(free.std[name], rel=1e-5)
+
+
+def test_the_calibrated_model_says_an_unknown_was_held_at_its_limit_not_sigma_0(tmp_path):
+    """An unknown the data push past its hard limit ends on it with σ 0: the calibrated model's
+    header read '(σ 0)', as if perfectly determined; it names the limit now."""
+    path = tmp_path / "held.mdl"
+    path.write_text(
+        "param a = 0.5 m in [0 m, 1 m] bounded\nparam b = 0 m in [-1 m, 1 m]\npoint p = (a, b, 0)\nmeasure point3d\n"
+    )
+    model = mbcal.load_model(path)
+    plan = mbcal.measurements_from_records([{"kind": "point3d", "point": "p", "sigma": 0.01}], model)
+    data = mbcal.simulate(model, plan, {"a": -0.2, "b": 0.3}, noise=0.0, seed=0)
+    result = mbcal.calibrate(model, data, ["a", "b"], restarts=2)
+    assert result.observability.active_bounds == {"a": "lower"} and result.values["a"] == 0.0
+    result.write_model(tmp_path / "out.mdl")
+    header = [line for line in (tmp_path / "out.mdl").read_text().splitlines() if line.startswith("#   ")]
+    (a,) = [line for line in header if line.startswith("#   a =")]
+    (b,) = [line for line in header if line.startswith("#   b =")]
+    assert a.endswith("(held at its lower limit)") and "σ" not in a
+    assert "(σ " in b

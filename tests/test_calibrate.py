@@ -400,3 +400,26 @@ def test_the_model_summary_counts_in_the_singular_and_the_plural():
     model = mbcal.load_model_text("camera c(width = 8, height = 6, f = 4)\npoint p = (0, 0, 1)\npoint q = (0, 1, 1)")
     counts = model_summary(model).splitlines()[1]
     assert "1 camera," in counts and "2 points" in counts and "0 range sensors" in counts and "0 shapes" in counts
+
+
+def test_a_robust_fit_does_not_call_its_robust_cost_a_chi2():
+    """With a robust loss, S is Σρ(r²): the header called Σρ/dof the reduced χ² while the fit verdict
+    below tested the plain squares."""
+    from mbcal.solver import SolverConfig
+
+    model = mbcal.load_model_text(
+        "param a = 1 m in [0 m, 2 m]\nparam b = 0.2 m in [0 m, 1 m]\n"
+        + "".join(f"point p{k} = (a + {0.1 * k} m, b, {0.05 * k} m)\n" for k in range(6))
+        + "measure point3d"
+    )
+    plan = mbcal.measurements_from_records(
+        [{"kind": "point3d", "point": f"p{k}", "sigma": 0.01} for k in range(6)], model
+    )
+    data = mbcal.simulate(model, plan, {"a": 1.1, "b": 0.25}, noise=1.0, seed=0)
+    robust = mbcal.calibrate(model, data, ["a", "b"], restarts=2, config=SolverConfig(loss="cauchy"))
+    plain = mbcal.calibrate(model, data, ["a", "b"], restarts=2)
+    head = robust.summary().splitlines()[1]
+    assert head.startswith(f"S = Σρ(r²) = {robust.cost:.6g} (cauchy loss)") and "Σρ/dof = " in head
+    assert "χ²" not in head and head.endswith(f"RMS: point3d {robust.rms['point3d']:.4g} m")
+    plain_head = plain.summary().splitlines()[1]
+    assert plain_head.startswith(f"S = {plain.cost:.6g} over 18 residuals") and "reduced χ² = " in plain_head

@@ -98,6 +98,7 @@ def write_calibrated_model(
     std: Mapping[str, float] | None = None,
     note: Sequence[str] = (),
     overwrite: bool = True,
+    at_bound: Mapping[str, str] | None = None,
 ) -> None:
     """Write ``model`` with ``values`` (SI, by unknown name) as its nominal values (see module doc).
 
@@ -116,6 +117,9 @@ def write_calibrated_model(
         Extra header lines (what the values were estimated from).
     overwrite : bool
         Replace ``path`` if it exists.
+    at_bound : mapping, optional
+        Unknowns held at a hard limit (name → ``lower`` or ``upper``): the limit, not the data,
+        gave their value, and the header says so instead of their σ of 0.
     """
     source = Path(model.path)
     if source.suffix.lower() == ".urdf":
@@ -130,6 +134,7 @@ def write_calibrated_model(
     overrides: list[str] = []
     main = source.resolve()
     std = dict(std or {})
+    held = dict(at_bound or {})
     for name, value in values.items():
         if "@" in name:
             continue  # per-configuration copies are not model values
@@ -158,7 +163,9 @@ def write_calibrated_model(
         unit = model.param(name.split("@")[0]).unit
         s = std.get(name, float("nan"))
         shown = np.degrees(value) if unit == "deg" else value
-        if np.isnan(s):
+        if name in held:
+            sigma = f"held at its {held[name]} limit"
+        elif np.isnan(s):
             sigma = "σ not given"
         elif not np.isfinite(s):
             sigma = "unobservable"
