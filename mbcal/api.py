@@ -96,8 +96,9 @@ class CalibrateOptions:
     """Use the model's prior σ of the unknowns."""
     scale_covariance: bool = False
     """Multiply the covariance by the reduced χ² (when the σ of the measurements are not trusted).
-    Not done without redundancy (no more residuals than unknowns: the residuals then say nothing
-    about the noise); the result's ``run.scale_covariance`` says whether it was."""
+    Not done without redundancy (no more residuals than free unknowns — those not held at a hard
+    limit: the residuals then say nothing about the noise); the result's ``run.scale_covariance``
+    says whether it was."""
     points: Sequence[str] | None = None
     """Points whose uncertainty to report (default: every measured point)."""
     camera: str | None = None
@@ -482,7 +483,9 @@ def calibrate(
     say("analysing observability")
     cost = solved.cost_best
     m_rows = problem.n_residuals
-    provisional_dof = m_rows - params.size
+    # the free unknowns: one held at a hard limit takes no degree of freedom (as in the fit verdict)
+    free = params.size - int(np.count_nonzero(solved.active_best))
+    provisional_dof = m_rows - free
     if scale_covariance and provisional_dof <= 0:
         # No redundancy: the residuals say nothing about the noise's scale (S is ~0 at an exact
         # fit, and scaling by it shrank every σ to ~0 under a "well determined" verdict).  The

@@ -372,7 +372,10 @@ class FitVerdict:
     def verdict(self) -> str:
         """One phrase: trustworthy or not, and why."""
         if self.trustworthy:
-            return "consistent and well determined" if self.tested else "well determined (the fit is not tested)"
+            if self.tested:
+                return "consistent and well determined"
+            # a plan (no measured values) has no fit to test; a solve without redundancy has one it cannot test
+            return "well determined" if self.chi2 is None else "well determined (the fit is not tested)"
         why = []
         if not self.determined:
             why.append(self._undetermined_text())

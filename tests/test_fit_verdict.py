@@ -405,3 +405,28 @@ def test_a_fit_without_redundancy_is_not_called_consistent_and_its_sigma_is_not_
             assert result.std[name] == pytest.approx(0.01, rel=1e-6)  # the stated σ: one point, one σ per axis
     assert not scaled.run.scale_covariance  # asked for, not done: nothing to scale by
     assert mbcal.calibrate(model, data, ["a", "b"], restarts=2, scale_covariance=True).run.scale_covariance
+
+
+def test_a_plan_is_well_determined_without_a_word_about_a_fit_it_does_not_have():
+    from mbcal.fit import FitVerdict
+
+    plan = FitVerdict(None, 0, None, threshold=0.001, consistent=True)
+    assert plan.verdict() == "well determined" and "not tested" in plan.headline()
+    untested = FitVerdict(1e-20, 0, None, threshold=0.001, consistent=True)
+    assert untested.verdict() == "well determined (the fit is not tested)"
+
+
+def test_an_unknown_held_at_its_limit_leaves_a_degree_of_freedom_to_scale_the_covariance_by():
+    """One 3-D point, three unknowns, one of them held at its hard limit: two free unknowns for
+    three residuals, a degree of freedom that the fit verdict tests and --scale-covariance uses."""
+    model = mbcal.load_model_text(
+        "param a = 0.5 m in [0 m, 1 m] bounded\nparam b = 0 m in [-1 m, 1 m]\nparam c = 0 m in [-1 m, 1 m]\n"
+        "point p = (a, b, c)\nmeasure point3d"
+    )
+    plan = mbcal.measurements_from_records([{"kind": "point3d", "point": "p", "sigma": 0.01}], model)
+    data = mbcal.simulate(model, plan, {"a": -0.2, "b": 0.2, "c": -0.1}, noise=1.0, seed=0)
+    result = mbcal.calibrate(model, data, ["a", "b", "c"], restarts=2, scale_covariance=True)
+    assert result.observability.active_bounds == {"a": "lower"}
+    assert result.verdict.dof == 1 and result.verdict.tested and result.run.scale_covariance
+    chi2 = result.cost / 1
+    assert result.std["b"] == pytest.approx(0.01 * math.sqrt(chi2), rel=1e-6)
