@@ -35,7 +35,7 @@ from mbcal import __version__  # noqa: E402
 from mbcal._collector import end_start_up, pause_start_up  # noqa: E402
 from mbcal.cache import CACHE_PARTS, PROGRAM_PARTS, cache_contents, cache_dir, clear_cache, max_part_bytes  # noqa: E402
 from mbcal.errors import MbcalError  # noqa: E402
-from mbcal.outputs import INTERRUPTED, atomic_write, check_output, check_output_folder, finite_or_null  # noqa: E402
+from mbcal.outputs import INTERRUPTED, atomic_write, check_output, check_output_folder  # noqa: E402
 from mbcal.text import table  # noqa: E402
 from mbcal.units import LENGTH, UNITS, describe, to_display  # noqa: E402
 
@@ -1276,8 +1276,8 @@ def cmd_watch(args: argparse.Namespace) -> int:
     )
 
     def report(u) -> None:
-        if args.json:  # one strict JSON object per line (JSON has no inf or NaN: null)
-            print(json.dumps(finite_or_null(u.to_json()), allow_nan=False), flush=True)
+        if args.json:  # one strict JSON object per line (Update.to_json: inf and NaN are null)
+            print(json.dumps(u.to_json(), allow_nan=False), flush=True)
             return
         if args.quiet:
             return

@@ -38,6 +38,7 @@ from mbcal.language import ir
 from mbcal.language.model import Model
 from mbcal.measurements.sets import MeasurementSet, measurements_from_records
 from mbcal.modeling import Needs, modeler, parameter_vector
+from mbcal.outputs import finite_or_null
 from mbcal.params import ParameterSet
 from mbcal.render.views import Layer, draw_overlay, load_image, save_png
 from mbcal.solver import SolverConfig
@@ -450,10 +451,7 @@ class CameraCalibration:
         data = self.result.to_json()
         # std null: fixed (estimated false) or not determined by the views (estimated true, σ = ∞)
         data["cameras"] = {
-            cam: {
-                k: {"value": v, "std": None if s is None or not np.isfinite(s) else s, "estimated": s is not None}
-                for k, (v, s) in values.items()
-            }
+            cam: {k: {"value": v, "std": finite_or_null(s), "estimated": s is not None} for k, (v, s) in values.items()}
             for cam, values in self.intrinsics.items()
         }
         data["views"] = self.views
