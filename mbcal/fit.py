@@ -324,6 +324,13 @@ class FitVerdict:
             return "no measured values: the fit is not tested"
         aside = f" after setting aside {len(self.set_aside)} outlier(s)" if self.set_aside else ""
         if self.p_value is None:
+            structural = sum(1 for s in self.suspects if s.kind == "structural")
+            if structural and not self.consistent:
+                # a robust fit: the groups were found off by tests of their own; nothing is left to test the rest
+                return (
+                    f"INCONSISTENT with the stated σ: {structural} group(s) systematically off (suspects below); "
+                    f"the rest{aside} has no redundancy to test (S = {self.chi2:.6g}, 0 degrees of freedom)"
+                )
             return f"S = {self.chi2:.6g} with no redundancy{aside} (0 degrees of freedom): the fit cannot be tested"
         what = "consistent with the stated σ" if self.consistent else "INCONSISTENT with the stated σ"
         rel = "≥" if self.p_value >= self.threshold else "<"

@@ -292,6 +292,11 @@ class ParameterSet:
         """
         return ParamView(self._source, x, known_row, config)
 
+    def slots(self, configuration: int = 0) -> np.ndarray:
+        """(n_params,) for each parameter of the model, the position in x of the unknown that gives
+        its value in configuration number ``configuration``, or −1 where it is known (a copy)."""
+        return self._source[configuration].copy()
+
     def X(self, x: Array | None = None) -> np.ndarray:
         """Like :meth:`param`, eagerly with numpy (default x: :attr:`x0`)."""
         X = self.known.copy()

@@ -334,3 +334,40 @@ def test_the_camera_table_tells_a_fixed_intrinsic_from_one_the_views_do_not_dete
     assert cameras["skew"] == {"value": 0.0, "std": None, "estimated": False}
     assert cameras["k3"]["std"] is None and cameras["k3"]["estimated"] is True
     assert cameras["fx"]["std"] == pytest.approx(cam["fx"][1]) and cameras["fx"]["estimated"] is True
+
+
+def test_an_intrinsic_given_by_an_expression_shows_the_sigma_propagated_from_its_unknowns(tmp_path):
+    """fy = fx · aspect with fx and aspect estimated: its σ is the one fy has when it is itself the
+    unknown (the same model, parameterised otherwise: linear propagation is exact there); it read
+    'fixed' before.  An expression of known parameters only stays fixed."""
+    text = (MODELS / "camera_calibration.mdl").read_text()
+    assert "fy = cam.fy, cx = cam.cx" in text and "param cam.fy = 800 in [300, 2000]\n" in text
+    derived = text.replace("param cam.fy = 800 in [300, 2000]\n", "param cam.aspect = 1 in [0.9, 1.1]\n")
+    derived = derived.replace("fy = cam.fy, cx = cam.cx", "fy = cam.fx * cam.aspect, cx = cam.cx + cam.shift")
+    derived = derived.replace("param cam.cx =", "param cam.shift = 0\nparam cam.cx =")  # known: cx's σ is cam.cx's
+    path = tmp_path / "aspect.mdl"
+    path.write_text(derived)
+    plain = mbcal.load_model(MODELS / "camera_calibration.mdl")
+    model = mbcal.load_model(path)
+    data, _ = simulate_views(plain, 6, {"cam.fx": 810.0, "cam.fy": 805.0, "cam.k1": -0.1}, seed=2, sigma=0.3)
+    direct = calibrate_cameras(plain, data)
+    via = calibrate_cameras(model, data)
+    fy, fy_via = direct.intrinsics["cam"]["fy"], via.intrinsics["cam"]["fy"]
+    assert fy_via[0] == pytest.approx(fy[0], rel=1e-8)
+    assert fy_via[1] is not None and fy_via[1] == pytest.approx(fy[1], rel=1e-4)
+    assert via.intrinsics["cam"]["cx"][1] == pytest.approx(via.result.std["cam.cx"], rel=1e-12)
+    table = via.summary().split("per view:")[0]
+    rows = {line.split()[0]: line for line in table.splitlines()[3:] if line.strip()}
+    assert rows["fy"].split()[-1] == f"{fy_via[1]:.3g}"
+    cameras = json.loads(json.dumps(via.to_json(), allow_nan=False))["cameras"]["cam"]
+    assert cameras["fy"]["estimated"] is True and cameras["fy"]["std"] == pytest.approx(fy_via[1])
+
+    # aspect known: fy = fx · 0.99 still reads an unknown; k3 = 2 · shift reads known parameters only: fixed
+    known = derived.replace("param cam.aspect = 1 in [0.9, 1.1]\n", "param cam.aspect = 0.99\n")
+    assert "k3 = cam.k3)" in known
+    path.write_text(known.replace("k3 = cam.k3)", "k3 = 2 * cam.shift)"))
+    fixed = calibrate_cameras(mbcal.load_model(path), data)
+    assert fixed.intrinsics["cam"]["fy"][1] == pytest.approx(0.99 * fixed.result.std["cam.fx"], rel=1e-10)
+    assert fixed.intrinsics["cam"]["k3"] == (0.0, None)
+    rows = {line.split()[0]: line for line in fixed.summary().split("per view:")[0].splitlines()[3:] if line.strip()}
+    assert rows["k3"].endswith("fixed") and not rows["fy"].endswith("fixed")

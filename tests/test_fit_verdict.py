@@ -430,3 +430,21 @@ def test_an_unknown_held_at_its_limit_leaves_a_degree_of_freedom_to_scale_the_co
     assert result.verdict.dof == 1 and result.verdict.tested and result.run.scale_covariance
     chi2 = result.cost / 1
     assert result.std["b"] == pytest.approx(0.01 * math.sqrt(chi2), rel=1e-6)
+
+
+def test_a_robust_fit_whose_rest_is_untestable_says_the_groups_found_make_it_inconsistent():
+    """A robust fit that found a structural group by the group's own test, leaving no redundancy
+    for the rest: the headline said 'the fit cannot be tested' above 'NOT trustworthy: the fit is
+    inconsistent'.  It names the groups now; without a group it still cannot be tested."""
+    from mbcal.fit import FitVerdict, Suspect
+
+    group = Suspect("structural", "frame board", ("m1", "m2", "m3"), 41.0, 1e-6, None, "frame board: off")
+    found = FitVerdict(2.5, 0, None, DEFAULT_THRESHOLD, consistent=False, suspects=(group,), loss="cauchy")
+    assert not found.tested and not found.ok
+    head = found.headline()
+    assert head.startswith("INCONSISTENT with the stated σ: 1 group(s) systematically off")
+    assert "cannot be tested" not in found.text() and "no redundancy to test (S = 2.5, 0 degrees" in head
+    assert found.verdict().startswith("NOT trustworthy: the fit is inconsistent with the stated σ")
+    nothing = FitVerdict(2.5, 0, None, DEFAULT_THRESHOLD, consistent=True, loss="cauchy")
+    assert nothing.headline().endswith("the fit cannot be tested")
+    assert nothing.verdict() == "well determined (the fit is not tested)"

@@ -439,7 +439,8 @@ class CameraCalibration:
     cameras: list[str]
     intrinsics: dict[str, dict[str, tuple[float, float | None]]] = field(default_factory=dict)
     """Per camera, per intrinsic (``fx`` … ``k3``): (value, σ); σ None when the intrinsic is fixed,
-    ∞ when it is estimated but the views do not determine it."""
+    ∞ when it is estimated but the views do not determine it; for an intrinsic given by an
+    expression, the σ propagated from the unknowns it reads (None when it reads none)."""
     views: list[dict[str, Any]] = field(default_factory=list)
     rms: float = float("nan")
 
@@ -487,6 +488,33 @@ class CameraCalibration:
         out.append("")
         out.append(self.result.summary(max_residuals=8))
         return "\n".join(out)
+
+
+def _expression_std(result: Any, node: ir.Node, X: np.ndarray) -> float | None:
+    """σ of a camera's intrinsic given by an expression of parameters (``fy = f * aspect``), in
+    the first configuration: gᵀ C g with g its gradient (JAX autodiff) in the unknowns it reads
+    and C their covariance; None when it reads no unknown (fixed), ∞ when one of them is not
+    determined by the views."""
+    slots = result.problem.params.slots(0)
+    read = sorted(j for j in (int(slots[p]) for p in ir.depends_on(node)) if j >= 0)
+    if not read:
+        return None
+    from mbcal._jax import jax, jnp
+
+    gradient = np.asarray(jax.grad(lambda P: ir.evaluate(node, P, {}, jnp))(jnp.asarray(X, dtype=float)))
+    g = np.zeros(len(read))
+    for p, j in enumerate(slots):
+        if j >= 0 and int(j) in read:
+            g[read.index(int(j))] += gradient[p]
+    std = result.observability.std[read]
+    moved = g != 0
+    if not moved.any():
+        return 0.0
+    if not np.all(np.isfinite(std[moved])):
+        return math.inf
+    idx = np.asarray(read)[moved]
+    C = np.asarray(result.covariance[np.ix_(idx, idx)], dtype=float)
+    return float(math.sqrt(max(float(g[moved] @ C @ g[moved]), 0.0)))
 
 
 def default_unknowns(model: Model, data: MeasurementSet) -> list[str]:
@@ -595,7 +623,10 @@ def calibrate_cameras(
         for label, node in zip(INTRINSIC_NAMES + DISTORTION_NAMES, info.intrinsics + info.distortion):
             name = _param(node)
             v = float(ir.evaluate(node, X, {}, np))
-            s = std.get(name) if name is not None and name in values else None
+            if name is not None:
+                s = std.get(name) if name in values else None
+            else:  # an expression: its σ propagated from the unknowns it reads (None when it reads none)
+                s = _expression_std(result, node, X)
             entry[label] = (v, None if s is None else float(s))  # None: fixed; ∞: estimated, not determined
         intrinsics[cam] = entry
     views = []
