@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 import functools
+import math
 import threading
 import time
 import weakref
@@ -718,13 +719,19 @@ def simulate(
         image); otherwise they raise an error.
     """
     truth = dict(truth or {})
-    names = list(dict.fromkeys(k.split("@")[0] for k in truth))
+    if not (isinstance(noise, (int, float)) and math.isfinite(noise) and noise >= 0):
+        raise SolverError(f"noise must be a finite number ≥ 0 (a multiplier of each σ), got {noise!r}")
+    if seed is not None and not (isinstance(seed, (int, np.integer)) and seed >= 0):
+        raise SolverError(f"seed must be a whole number ≥ 0 or None, got {seed!r}")
+    names = list(dict.fromkeys(str(k).split("@")[0] for k in truth))
     problem = Problem(model, plan, names, priors=False)
     x = problem.params.from_dict({k: v for k, v in truth.items() if k in problem.params.names})
     for key in truth:
         if key not in problem.params.names:
             # A per-configuration parameter set globally: give every copy the value.
             copies = [n for n in problem.params.names if n.split("@")[0] == key]
+            if not copies:  # name@config of no configuration's copy: an error, not the nominal value
+                problem.params.from_dict({key: truth[key]})
             for c in copies:
                 x[problem.params.names.index(c)] = float(truth[key])
     visible = problem.visible(x)
@@ -770,6 +777,7 @@ def observe(
     estimate: Sequence[str],
     *,
     at: Mapping[str, float] | None = None,
+    known: Mapping[str, float] | None = None,
     priors: bool = True,
     suggest: bool = True,
     points: Sequence[str] | None = None,
@@ -780,11 +788,13 @@ def observe(
 ) -> PlanAnalysis:
     """Analyse a plan before measuring: rank, σ per unknown, unobservable combinations, suggestions.
 
-    The Jacobian is taken at the nominal values (or ``at``).  ``verdict`` says whether every unknown
-    would be well determined (``fit``: the condition-number limit; ``accept_poor_fit``: count a
-    weakly determined plan as ``ok``).
+    The Jacobian is taken at the nominal values (or ``at``, values of unknowns), with ``known``
+    values (SI) replacing the model's and the plan's for parameters that are not estimated, as
+    in :func:`calibrate`.  ``verdict`` says whether every unknown would be well determined
+    (``fit``: the condition-number limit; ``accept_poor_fit``: count a weakly determined plan
+    as ``ok``).
     """
-    problem = Problem(model, plan, estimate, priors=priors)
+    problem = Problem(model, plan, estimate, known=known, priors=priors)
     if problem.params.size == 0:
         raise SolverError("nothing to estimate: name the unknowns (--estimate NAME|GLOB)")
     check_size(1, problem.params.size, problem.n_residuals)

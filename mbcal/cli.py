@@ -34,7 +34,7 @@ import numpy as np  # noqa: E402
 from mbcal import __version__  # noqa: E402
 from mbcal._collector import end_start_up, pause_start_up  # noqa: E402
 from mbcal.cache import CACHE_PARTS, PROGRAM_PARTS, cache_contents, cache_dir, clear_cache, max_part_bytes  # noqa: E402
-from mbcal.errors import MbcalError  # noqa: E402
+from mbcal.errors import MbcalError, suggest  # noqa: E402
 from mbcal.outputs import INTERRUPTED, atomic_write, check_output, check_output_folder  # noqa: E402
 from mbcal.text import table  # noqa: E402
 from mbcal.units import LENGTH, UNITS, describe, to_display  # noqa: E402
@@ -183,6 +183,30 @@ def parse_assignments(items: Sequence[str], model=None, option: str = "--set") -
     return out
 
 
+def _check_values(model, values: dict[str, float], option: str = "--set") -> dict[str, float]:
+    """Values given on the command line must keep the model valid: within a parameter's hard
+    limits, and sizes positive and poses finite with them (as ``mbcal check`` requires at the
+    nominal values); returned as they are."""
+    from mbcal.language.check import check_at_nominal  # lazy: 'mbcal --help' does not load the parser
+
+    if not values:
+        return values
+    X = model.nominal.copy()
+    for key, value in values.items():
+        for name in model.match_params(key.split("@", 1)[0]):
+            info = model.param(name)
+            low = -math.inf if info.limit_lower is None else info.limit_lower
+            high = math.inf if info.limit_upper is None else info.limit_upper
+            if not low <= value <= high:
+                raise MbcalError(
+                    f"{option} {key}: {value:g} (SI) is outside the hard limits of {name} [{low:g}, {high:g}]"
+                )
+            if "@" not in key:  # one configuration's value: checked against the limits only
+                X[model.param_index(name)] = value
+    check_at_nominal(model, X, where=f"with the values of {option}")
+    return values
+
+
 def cmd_scene(args: argparse.Namespace) -> int:
     from mbcal.modeling import modeler, parameter_vector  # lazy: keeps JAX out of 'mbcal check'
 
@@ -190,10 +214,14 @@ def cmd_scene(args: argparse.Namespace) -> int:
     fmt = out.suffix.lower().lstrip(".")
     if fmt not in ("glb", "gltf", "obj", "stl", "ply", "off"):
         raise MbcalError(f"cannot export '{out.suffix}': use .glb, .obj, .stl, .ply or .off")
-    model = _load(args.model)
-    values = parse_assignments(args.set or [], model)
+    model = _load(args.model, args, [args.model])
+    values = _check_values(model, parse_assignments(args.set or [], model))
     scene = modeler(model, parameter_vector(model, values))
     tm = scene.to_trimesh(points=args.points)
+    if not tm.geometry:
+        raise MbcalError(
+            f"nothing to export: {args.model} has no shapes" + ("" if args.points else " (--points adds its points)")
+        )
     if fmt in ("stl", "ply", "off"):
         data = tm.to_mesh().export(file_type=fmt)  # a single mesh in world coordinates
     elif fmt == "gltf":
@@ -260,10 +288,15 @@ class Progress:
             print(f"\r✓ {self._message} ({elapsed:.1f} s)", file=sys.stderr, flush=True)
 
 
-def _load(path: str):
+def _load(path: str, args: argparse.Namespace | None = None, inputs: Sequence[str] = ()):
+    """The model at ``path``; with ``args``, its outputs checked again against every file the model
+    reads (its includes, meshes and point files: known only once it is loaded) and ``inputs``."""
     from mbcal.language import load_model  # lazy: 'mbcal --help' does not load the parser
 
-    return load_model(path)
+    model = load_model(path)
+    if args is not None:
+        _check_outputs(args, [*inputs, *model.files, *model.data_files])
+    return model
 
 
 def _solver_config(args):
@@ -335,12 +368,22 @@ def _background(model, camera: str, path: str, option: str) -> np.ndarray:
     return image
 
 
+_OUTPUT_OPTIONS = {"json": "--json", "write_model": "--write-model", "plot": "--plot", "output": "-o/--output"}
+
+
 def _check_outputs(args, inputs) -> None:
-    """Validate every output path before any work is done (nothing is lost on a bad path)."""
-    for attr in ("json", "write_model", "plot", "output"):
+    """Validate every output path before any work is done (nothing is lost on a bad path): none is
+    an input, none is named by two options (one would replace the other), none is empty."""
+    claimed: dict[Path, str] = {}
+    for attr, option in _OUTPUT_OPTIONS.items():
         value = getattr(args, attr, None)
+        if value == "":
+            raise MbcalError(f"{option} needs a file name, got an empty one")
         if value and value != "-":
-            check_output(value, inputs)
+            where = check_output(value, inputs).resolve()
+            if where in claimed:
+                raise MbcalError(f"{claimed[where]} and {option} both name {value}: one would replace the other")
+            claimed[where] = option
     if getattr(args, "overlay", None):
         check_output_folder(args.overlay, "--overlay")
 
@@ -377,7 +420,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
     _check_outputs(args, inputs)
     progress = Progress(not args.quiet)
     progress.step(f"reading {args.model} and {', '.join(files + scans)}")
-    model = _load(args.model)
+    model = _load(args.model, args, inputs)
     sets = [read_measurements(path, model) for path in files]
     if scans:
         from mbcal.range.fit import scan_measurements  # lazy: keeps JAX out of 'mbcal check'
@@ -387,7 +430,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
         sets.append(scan_measurements(model, loaded, voxel=args.voxel, max_points=args.scan_points))
         args.loss = args.loss or "cauchy"  # scans hold points of things the model does not: robust
     data = merge_measurements(sets, model)
-    known = parse_assignments(args.set or [], model)
+    known = _check_values(model, parse_assignments(args.set or [], model))
     config = _solver_config(args)
     estimate = _estimate(model, args.estimate)
     # The photos for the overlays, read and checked before the solve (a wrong one is found at once).
@@ -442,7 +485,7 @@ def _model_and_plan(args: argparse.Namespace):
     from mbcal.measurements.io import read_measurements  # lazy: keeps JAX out of 'mbcal check'
 
     _check_outputs(args, [args.model, args.plan])
-    model = _load(args.model)
+    model = _load(args.model, args, [args.model, args.plan])
     return model, read_measurements(args.plan, model)
 
 
@@ -451,7 +494,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from mbcal.measurements.io import write_measurements  # lazy: keeps JAX out of 'mbcal check'
 
     model, plan = _model_and_plan(args)
-    truth = parse_assignments(args.set or [], model)
+    truth = _check_values(model, parse_assignments(args.set or [], model))
     if not math.isfinite(args.noise) or args.noise < 0:
         raise MbcalError(f"--noise must be a non-negative number, got {args.noise}")
     data = simulate(model, plan, truth, noise=args.noise, seed=args.seed, drop_invisible=args.drop_invisible)
@@ -473,11 +516,13 @@ def cmd_observe(args: argparse.Namespace) -> int:
     model, plan = _model_and_plan(args)
     inputs = [args.model, args.plan]
     at = parse_assignments(args.at or [], model, "--at")
+    known = _check_values(model, parse_assignments(args.set or [], model))
     analysis = observe(
         model,
         plan,
         _estimate(model, args.estimate),
         at=at or None,
+        known=known or None,
         priors=not args.no_priors,
         camera=args.camera,
         accept_poor_fit=args.accept_poor_fit,
@@ -505,11 +550,11 @@ def cmd_render(args: argparse.Namespace) -> int:
     _check_outputs(args, inputs)
     if Path(args.output).suffix.lower() != ".png":
         raise MbcalError("render writes PNG images: give an output name ending in .png")
-    model = _load(args.model)
+    model = _load(args.model, args, inputs)
     if not model.cameras:
         raise MbcalError(f"{args.model} has no camera to render from")
     camera = model.resolve("camera", args.camera) if args.camera else model.cameras[0].name
-    scene = modeler(model, parameter_vector(model, parse_assignments(args.set or [], model)))
+    scene = modeler(model, parameter_vector(model, _check_values(model, parse_assignments(args.set or [], model))))
     # The depth pass is for the wireframe's occlusion only.
     view = render_view(scene, camera, points=args.points and not args.wireframe, depth=bool(args.wireframe))
     if args.background is not None:
@@ -558,7 +603,7 @@ def cmd_detect(args: argparse.Namespace) -> int:
     _check_outputs(args, [args.target, *args.images])
     if not math.isfinite(args.sigma) or args.sigma <= 0:
         raise MbcalError(f"--sigma must be positive, got {args.sigma}")
-    model = _load(args.target)
+    model = _load(args.target, args, [args.target, *args.images])
     progress = Progress(not args.quiet)
     progress.step(f"detecting the target in {len(args.images)} images")
     data, detections = detect_images(model, args.images, target=args.name, camera=args.camera, sigma=args.sigma)
@@ -580,12 +625,30 @@ def cmd_calibrate_camera(args: argparse.Namespace) -> int:
 
     inputs = [args.model, *args.measurements]
     _check_outputs(args, inputs)
-    model = _load(args.model)
+    model = _load(args.model, args, inputs)
     data = merge_measurements([read_measurements(path, model) for path in args.measurements], model)
-    progress = Progress(not args.quiet)
-    progress.step("initialising (Zhang's method) and refining")
     if args.restarts is not None:
         check_size(args.restarts)
+    images = dict(data.images)
+    seen: dict[str, set[str]] = {}  # configuration → the cameras with corners in it
+    for m in data:
+        if m.kind == "image_point":
+            seen.setdefault(m.config, set()).add(m.refs["camera"])
+    for item in args.image or []:  # checked before the solve: a wrong one is found at once
+        if "=" not in item:
+            raise MbcalError(f"--image expects CONFIG=PATH or CONFIG@CAMERA=PATH, got '{item}'")
+        key, path = item.split("=", 1)
+        config, _, camera = key.partition("@")
+        if config not in seen:
+            raise MbcalError(
+                f"--image {item}: no corners were measured in a configuration '{config}'",
+                hint=suggest(config, list(seen)) or f"configurations: {', '.join(list(seen)[:10])}",
+            )
+        for cam in [model.resolve("camera", camera)] if camera else sorted(seen[config]):
+            _background(model, cam, path, f"--image {item}")  # exists, and has the camera's size
+        images[key] = path
+    progress = Progress(not args.quiet)
+    progress.step("initialising (Zhang's method) and refining")
     cc = calibrate_cameras(
         model,
         data,
@@ -597,12 +660,6 @@ def cmd_calibrate_camera(args: argparse.Namespace) -> int:
         fit=_fit_config(args),
         accept_poor_fit=args.accept_poor_fit,
     )
-    images = dict(data.images)
-    for item in args.image or []:
-        if "=" not in item:
-            raise MbcalError(f"--image expects CONFIG=PATH, got '{item}'")
-        config, path = item.split("=", 1)
-        images[config] = path
     if args.overlay:
         progress.step("drawing the reprojected corners on the images")
         if not images:
@@ -689,6 +746,26 @@ def _whole(low: int, high: int | None, what: str) -> Callable[[str], int]:
 
 
 _seed = _whole(0, None, "a whole number ≥ 0")  # NumPy's generators take no negative seed
+_count = _whole(1, None, "a whole number ≥ 1")
+
+
+def _number(low: float, strict: bool) -> Callable[[str], float]:
+    """An argparse type: a finite number above ``low`` (``strict``) or from ``low`` on."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not math.isfinite(value) or value < low or (strict and value == low):
+            raise argparse.ArgumentTypeError(f"expected a number {'>' if strict else '≥'} {low:g}, got {text}")
+        return value
+
+    return parse
+
+
+_positive = _number(0.0, strict=True)
+_nonnegative = _number(0.0, strict=False)
 _port = _whole(0, 65535, "a port from 0 (any free one) to 65535")
 
 
@@ -715,8 +792,10 @@ def cmd_kinematics(args: argparse.Namespace) -> int:
     from mbcal.kinematics import Kinematics  # lazy: keeps JAX out of 'mbcal check'
 
     _check_outputs(args, [args.model])
-    model = _load(args.model)
-    kin = Kinematics(model, args.point, chain=args.chain, values=parse_assignments(args.set or [], model))
+    model = _load(args.model, args, [args.model])
+    kin = Kinematics(
+        model, args.point, chain=args.chain, values=_check_values(model, parse_assignments(args.set or [], model))
+    )
     meant = [(name, model.param(name).dim) for name in kin.joints]
     theta = np.asarray(_quantities(args.joints, "--joints", meant)) if args.joints else kin.theta0
     if len(theta) != kin.n:
@@ -822,7 +901,9 @@ def _register_commands(sub) -> None:
         help="a point cloud or depth image as point-to-surface measurements, beside the others (a .csv or "
         ".txt cloud must be given this way); repeatable; the loss defaults to cauchy with scans",
     )
-    p.add_argument("--voxel", type=float, default=0.01, metavar="M", help="scan down-sampling voxel (default 0.01 m)")
+    p.add_argument(
+        "--voxel", type=_nonnegative, default=0.01, metavar="M", help="scan down-sampling voxel (default 0.01 m)"
+    )
     p.add_argument(
         "--scan-points", type=int, default=2000, metavar="N", help="at most N points per scan (default 2000)"
     )
@@ -840,7 +921,7 @@ def _register_commands(sub) -> None:
     p.add_argument("--scale-covariance", action="store_true", help="scale the covariance by the reduced χ²")
     p.add_argument(
         "--outlier-threshold",
-        type=float,
+        type=_nonnegative,
         default=3.0,
         metavar="K",
         help="list measurements whose residual exceeds K σ (default 3)",
@@ -1004,7 +1085,7 @@ def _register_commands(sub) -> None:
     )
     p.add_argument(
         "--restarts",
-        type=int,
+        type=_count,
         default=None,
         metavar="N",
         help="starts: Zhang's solution and N-1 random ones (default: Zhang's alone, and 4 when that fit does not "
@@ -1035,7 +1116,7 @@ def _register_commands(sub) -> None:
         cmd_demo,
     )
     p.add_argument("-o", "--output", default="mbcal-demo", metavar="DIR", help="output folder (default mbcal-demo)")
-    p.add_argument("--restarts", type=int, default=32, metavar="N")
+    p.add_argument("--restarts", type=_count, default=32, metavar="N")
     p.add_argument("--seed", type=_seed, default=0, metavar="S")
     _quiet_option(p)
 
@@ -1115,10 +1196,10 @@ def _register_commands(sub) -> None:
     )
     p.add_argument("--damping", type=float, default=0.0, metavar="λ", help="damped J* = Jᵀ(JJᵀ + λ²I)⁻¹ (default 0)")
     p.add_argument("--ik", metavar="X,Y,Z", help="a target position in the world: solve for the joint values")
-    p.add_argument("--restarts", type=int, default=16, metavar="N", help="IK starts (default 16)")
+    p.add_argument("--restarts", type=_count, default=16, metavar="N", help="IK starts (default 16)")
     p.add_argument("--seed", type=_seed, default=0, metavar="S", help="seed of the IK starts (default 0)")
     p.add_argument(
-        "--tolerance", type=float, default=1e-6, metavar="M", help="IK: reached within M metres (default 1e-6)"
+        "--tolerance", type=_positive, default=1e-6, metavar="M", help="IK: reached within M metres (default 1e-6)"
     )
     _json_option(p, "the result as JSON")
     _quiet_option(p, "print nothing (use the exit status, --json)")
@@ -1176,14 +1257,14 @@ def _register_commands(sub) -> None:
     p.add_argument("--scans", required=True, metavar="DIR", help="folder where scan files appear")
     p.add_argument("--out", required=True, metavar="DIR", help="folder of the history and the calibrated model")
     _range_arguments(p)
-    p.add_argument("--drift-k", type=float, default=3.0, metavar="K", help="drift flag at K σ (default 3)")
+    p.add_argument("--drift-k", type=_positive, default=3.0, metavar="K", help="drift flag at K σ (default 3)")
     p.add_argument(
         "--process-noise",
         action="append",
         metavar="GLOB=SIGMA",
         help="expected change per update, with a unit (0.5deg) or SI; repeatable",
     )
-    p.add_argument("--poll", type=float, default=1.0, metavar="S", help="seconds between looks (default 1)")
+    p.add_argument("--poll", type=_positive, default=1.0, metavar="S", help="seconds between looks (default 1)")
     p.add_argument("--once", action="store_true", help="process the files there now and exit")
     p.add_argument(
         "--json",
@@ -1221,9 +1302,9 @@ def _fit_options(args: argparse.Namespace):
 def _range_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--estimate", required=True, action="append", metavar="GLOB", help="unknowns (repeatable)")
     p.add_argument("--voxel", type=float, default=0.01, metavar="M", help="voxel size in metres (default 0.01; 0: off)")
-    p.add_argument("--crop", type=float, default=0.10, metavar="M", help="keep points within M of the model (0.10)")
+    p.add_argument("--crop", type=_positive, default=0.10, metavar="M", help="keep points within M of the model (0.10)")
     p.add_argument("--loss", choices=["cauchy", "huber", "linear"], default="cauchy", help="robust loss (cauchy)")
-    p.add_argument("--restarts", type=int, default=1, metavar="N", help="starting points (default 1)")
+    p.add_argument("--restarts", type=_count, default=1, metavar="N", help="starting points (default 1)")
     p.add_argument("--seed", type=_seed, default=0, metavar="S", help="seed of the starting points")
     p.add_argument("--coarse", choices=["auto", "always", "never"], default="auto", help="global alignment (auto)")
     p.add_argument("--sensor", metavar="NAME", help="the depth camera of depth images (default: the only one)")

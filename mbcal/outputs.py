@@ -131,7 +131,10 @@ def atomic_writer(path: str | os.PathLike[str], mode: str = "wb") -> Iterator:
     target = Path(path)
     # Beside the name given, not beside what a link there points to: the rename below replaces
     # that name (a link included), and a rename across file systems fails.
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part", dir=target.parent)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part", dir=target.parent)
+    except OSError as err:  # said of the file asked for, not of the temporary one beside it
+        raise OutputError(f"cannot write {target}: {err.strerror or err}") from None
     try:
         encoding, newline = (None, None) if "b" in mode else ("utf-8", "")
         with os.fdopen(fd, mode, encoding=encoding, newline=newline) as handle:

@@ -276,6 +276,8 @@ class ParameterSet:
         if self.size == 0:
             return base
         x = jnp.asarray(x)
+        if jnp.shape(x) != (self.size,):  # known while tracing too: a gather would clamp, not fail
+            raise ParameterError(f"x must hold one value per unknown ({self.size}), got shape {jnp.shape(x)}")
         return base.at[self._rows, self._cols].set(x[self._src])
 
     def views(self, x: Array, known: Array | None = None) -> tuple[Array, Array]:
@@ -302,6 +304,8 @@ class ParameterSet:
         X = self.known.copy()
         if self.size:
             x = self.x0 if x is None else np.asarray(x, dtype=float)
+            if x.shape != (self.size,):
+                raise ParameterError(f"x must hold one value per unknown ({self.size}), got shape {x.shape}")
             X[self._rows, self._cols] = x[self._src]
         return X
 

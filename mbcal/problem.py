@@ -90,7 +90,7 @@ class Problem:
         self._columns = columns
         self.params = ParameterSet(
             model,
-            list(estimate),
+            [estimate] if isinstance(estimate, str) else list(estimate),  # one name, not its letters
             known=measurements.known,
             configurations=columns.config_names,
             per_configuration=measurements.configurations,
@@ -435,6 +435,8 @@ class Problem:
         """Refuse problems the solver cannot start on (no unknowns, no values)."""
         if self.params.size == 0:
             raise SolverError("nothing to estimate: name the unknowns (--estimate NAME|GLOB)")
+        if not len(self.measurements):
+            raise SolverError("no measurements to estimate from: the measurement set is empty")
         self.measurements.require_values()
 
 

@@ -476,6 +476,12 @@ def hard_limits(
     when there are none or every side is infinite (then the unbounded program runs)."""
     if bounds is None:
         return None, x0
+    for side, name in zip(bounds, ("lower", "upper")):
+        given = np.shape(side)
+        if given not in ((), x0.shape[1:]):  # one number for all, or one per unknown: never spread
+            raise SolverError(
+                f"bounds: the {name} bounds have shape {given}; give one number or one per unknown {x0.shape[1:]}"
+            )
     lower = np.broadcast_to(np.asarray(bounds[0], dtype=float), x0.shape[1:]).copy()
     upper = np.broadcast_to(np.asarray(bounds[1], dtype=float), x0.shape[1:]).copy()
     if np.any(np.isnan(lower)) or np.any(np.isnan(upper)) or np.any(lower > upper):
@@ -759,6 +765,8 @@ def least_squares(
     """
     config = config or SolverConfig()
     x0 = np.atleast_2d(np.asarray(x0, dtype=float))
+    if x0.ndim != 2 or 0 in x0.shape:
+        raise SolverError(f"x0 must be (n,) or (restarts, n) with n ≥ 1, got shape {x0.shape}")
     args = tuple(as_argument(a) for a in args)  # not jnp.asarray: it compiles a program per shape
     local = local if config.manifold else None
     limits, x0 = hard_limits(bounds, x0)

@@ -164,3 +164,142 @@ def test_a_zero_scan_sigma_is_refused(tmp_path):
     assert result.returncode == 2 and "--sigma must be a positive number of metres, got 0.0" in result.stderr
     result = run("solve", MODELS / "room_depth.mdl", tmp_path / "s.png", "--estimate", "room.*", "--scan-sigma", "0")
     assert result.returncode == 2 and "--scan-sigma must be a positive number of metres" in result.stderr
+
+
+@pytest.fixture()
+def room_copy(tmp_path):
+    """The teleexistence model copied with the file it includes and the mesh it reads."""
+    import shutil
+
+    for part in ("teleexistence.mdl", "parts", "meshes"):
+        source = MODELS / part
+        (shutil.copytree if source.is_dir() else shutil.copy)(source, tmp_path / part)
+    return tmp_path
+
+
+@pytest.mark.parametrize(
+    "argv, victim",
+    [
+        (
+            ["observe", "teleexistence.mdl", "plan.csv", "--estimate", "room.*", "--json", "parts/stereo.mdl"],
+            "parts/stereo.mdl",
+        ),
+        (["scene", "teleexistence.mdl", "-o", "meshes/gauge_bezel.obj"], "meshes/gauge_bezel.obj"),
+        (["observe", "teleexistence.mdl", "plan.csv", "--json", "meshes/gauge_bezel.obj"], "meshes/gauge_bezel.obj"),
+    ],
+)
+def test_an_output_never_replaces_a_file_the_model_includes_or_reads(room_copy, monkeypatch, capsys, argv, victim):
+    """--json, --plot and -o were checked against the model file only: an included file or a mesh
+    the model reads was overwritten (exit 0)."""
+    import shutil
+
+    shutil.copy(MEASUREMENTS / "room_plan.csv", room_copy / "plan.csv")
+    monkeypatch.chdir(room_copy)
+    before = (room_copy / victim).read_bytes()
+    assert cli.main(argv) == 2
+    assert "refusing to overwrite the input file" in capsys.readouterr().err
+    assert (room_copy / victim).read_bytes() == before
+
+
+def test_two_outputs_at_one_path_or_an_empty_name_are_refused_before_the_work(tmp_path, clicks, capsys):
+    for extra in (["--json", "r.json", "--write-model", "r.json"], ["--json", ""]):
+        out = [str(tmp_path / a) if a.endswith(".json") else a for a in extra]
+        assert cli.main(["solve", LEVER, str(clicks), "--estimate", "lever.angle", "-q", *out]) == 2
+        err = capsys.readouterr().err
+        assert ("--json and --write-model both name" in err) if len(extra) == 4 else ("--json needs a file name" in err)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_observe_applies_set_and_values_on_the_command_line_must_keep_the_model_valid(tmp_path, capsys):
+    """observe ignored --set (a 1 mm lever read 0.294° instead of 79°); scene and render drew a box
+    of negative size from --set; a value outside a parameter's hard limits was taken."""
+    import json
+
+    sigmas = []
+    for extra in ([], ["--set", "lever.length=1mm"]):
+        out = tmp_path / f"o{len(extra)}.json"
+        cli.main(["observe", LEVER, LEVER_PLAN, "--estimate", "lever.angle", "-q", "--json", str(out), *extra])
+        sigmas.append(json.loads(out.read_text())["parameters"]["lever.angle"]["std"])
+    assert sigmas[1] > 100 * sigmas[0]  # σ grows as the lever shrinks: ~250× for 25 cm → 1 mm
+    assert cli.main(["scene", LEVER, "--set", "lever.length=-1", "-o", str(tmp_path / "x.ply")]) == 2
+    assert "must be positive, got -1 m with the values of --set" in capsys.readouterr().err
+    limited = tmp_path / "limited.mdl"
+    limited.write_text(
+        open(LEVER).read().replace("param lever.length = 25 cm", "param lever.length = 25 cm limits [20 cm, 30 cm]")
+    )
+    assert cli.main(["scene", str(limited), "--set", "lever.length=50cm", "-o", str(tmp_path / "x.ply")]) == 2
+    assert "is outside the hard limits of lever.length" in capsys.readouterr().err
+    assert not (tmp_path / "x.ply").exists()
+
+
+def test_a_shape_pose_that_is_not_finite_is_a_model_error():
+    with pytest.raises(MdlError, match=r"2:\d+: the pose of shape 'o.shape0' is not finite at the nominal values"):
+        load_model_text("object o {\n  shape box(1 m, 1 m, 1 m) at quat(0, 0, 0, 0)\n}\n")
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (
+            ["solve", LEVER, LEVER_PLAN, "--outlier-threshold", "-1"],
+            "--outlier-threshold: expected a number ≥ 0, got -1",
+        ),
+        (
+            ["solve", LEVER, LEVER_PLAN, "--outlier-threshold", "nan"],
+            "--outlier-threshold: expected a number ≥ 0, got nan",
+        ),
+        (["kinematics", LEVER, "lever.tip", "--tolerance", "-1"], "--tolerance: expected a number > 0, got -1"),
+        (["kinematics", LEVER, "lever.tip", "--restarts", "0"], "--restarts: expected a whole number ≥ 1, got 0"),
+        (
+            ["fit", LEVER, "s.ply", "--estimate", "lever.angle", "--restarts", "0"],
+            "--restarts: expected a whole number ≥ 1",
+        ),
+        (
+            ["watch", LEVER, "--scans", "in", "--out", "out", "--estimate", "x", "--poll", "-1"],
+            "--poll: expected a number > 0",
+        ),
+        (
+            ["watch", LEVER, "--scans", "in", "--out", "out", "--estimate", "x", "--drift-k", "0"],
+            "--drift-k: expected a number > 0",
+        ),
+        (["calibrate-camera", LEVER, "c.json", "--restarts", "0"], "--restarts: expected a whole number ≥ 1, got 0"),
+    ],
+)
+def test_option_values_that_make_no_sense_are_usage_errors(tmp_path, monkeypatch, capsys, argv, message):
+    """Accepted before: a negative outlier threshold listed every measurement, NaN none; a negative
+    IK tolerance called a reached target out of reach; zero restarts ran (or failed after the work)."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as stop:
+        cli.main(argv)
+    assert stop.value.code == 2 and message in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_calibrate_camera_checks_its_images_before_the_solve(tmp_path, capsys, monkeypatch):
+    """--image of a configuration with no corners was ignored, one of the wrong size drawn at that
+    size, a missing one found only after the whole solve."""
+    import mbcal
+    from mbcal.measurements.io import write_measurements
+    from mbcal.workflows.cameras import simulate_views
+
+    model_path = MODELS / "camera_calibration.mdl"
+    model = mbcal.load_model(model_path)
+    data, _ = simulate_views(model, 3, {"cam.fx": 810.0}, seed=1, sigma=0.3)
+    corners = tmp_path / "corners.csv"
+    write_measurements(data, corners)
+    view = data.measurements[0].config
+    Image.new("RGB", (100, 100)).save(tmp_path / "small.png")
+    Image.new("RGB", (640, 480)).save(tmp_path / "right.png")
+    solved = []
+    monkeypatch.setattr("mbcal.workflows.cameras.calibrate_cameras", lambda *a, **k: solved.append(1))
+    cases = [
+        (f"nope={tmp_path / 'right.png'}", "no corners were measured in a configuration 'nope'"),
+        (f"{view}={tmp_path / 'small.png'}", "the background is 100×100 pixels but camera 'cam' is 640×480"),
+        (f"{view}={tmp_path / 'missing.png'}", "image not found"),
+    ]
+    for image, message in cases:
+        code = cli.main(
+            ["calibrate-camera", str(model_path), str(corners), "--image", image, "--overlay", str(tmp_path / "ov")]
+        )
+        assert code == 2 and message in capsys.readouterr().err
+    assert solved == []  # refused before the solve

@@ -238,3 +238,16 @@ def test_every_model_error_is_an_mbcal_error():
         obj = getattr(errors, name)
         if isinstance(obj, type) and issubclass(obj, Exception):
             assert issubclass(obj, errors.MbcalError), name
+
+
+def test_a_byte_order_mark_is_skipped_and_bytes_that_are_not_utf8_are_located(tmp_path):
+    """A model that starts with a UTF-8 byte-order mark was 'unexpected character' at 1:1 (the CSV
+    and JSON readers skip it); a Latin-1 byte was reported without its line."""
+    bom = tmp_path / "bom.mdl"
+    bom.write_bytes(b"\xef\xbb\xbfparam a = 1 m\n")
+    assert [p.name for p in load_model(bom).params] == ["a"]
+    latin = tmp_path / "latin.mdl"
+    latin.write_bytes(b"param a = 1 m\n# caf\xe9\n")
+    with pytest.raises(errors.IncludeError) as info:
+        load_model(latin)
+    assert ":2:6: not UTF-8 text (byte 19)" in str(info.value)

@@ -189,6 +189,16 @@ CSV_ERRORS = {
         "m.csv:2:1: 'lever.angle' is given for configuration 'c1' but is not declared 'per configuration' in the model",
         None,
     ),
+    "underscore_number": (
+        "kind,camera,point,u,v\nimage_point,left,lever.tip,1_000,2\n",
+        "m.csv:2:28: value 'u': expected a number, got '1_000'",
+        None,
+    ),
+    "cell_too_long": (
+        "kind,camera,point,u,v\nimage_point,left,lever.tip," + "1" * 200_000 + ",2\n",
+        "m.csv:2:1: unreadable CSV: field larger than field limit",
+        None,
+    ),
     "empty": ("", "m.csv:1:1: empty file: no header row", None),
     "header_only": ("kind,camera,point,u,v\n", "m.csv:1:1: no measurements", None),
 }
@@ -696,3 +706,48 @@ def test_a_cell_of_another_kinds_column_is_an_error_not_ignored(tmp_path):
     path.write_text(header + good + "d,image_point,eyes.left,lever.hub,1,2,,,,,,lever.angle,\n")
     with pytest.raises(MeasurementFileError, match="'param' does not apply"):
         read_measurements(path, model)
+
+
+def test_json_numbers_beyond_a_float_and_nesting_beyond_pythons_are_located_errors(tmp_path, room, monkeypatch):
+    """A legal JSON integer of 401 or 5,001 digits ended in OverflowError or Python's digit-limit
+    ValueError, and an array nested 100,000 deep in RecursionError: tracebacks, not errors."""
+    monkeypatch.chdir(tmp_path)
+    for digits in (401, 5001):
+        write(
+            tmp_path,
+            "m.json",
+            '[{"kind": "image_point", "camera": "left", "point": "lever.tip", "u": 1, "v": ' + "7" * digits + "}]",
+        )
+        with pytest.raises(MeasurementFileError, match=r"^m.json:1:2: value 'v': must be finite"):
+            read_measurements("m.json", room)
+    write(tmp_path, "m.json", "[" * 100_000 + "]" * 100_000)
+    with pytest.raises(MeasurementFileError, match=r"^m.json:1:1: invalid JSON: nested too deeply"):
+        read_measurements("m.json", room)
+
+
+def test_values_or_sigmas_given_two_ways_are_refused_and_numpy_arrays_are_values(tmp_path, room, monkeypatch):
+    """'value' beside u, v (u, v were dropped) or 'cov' beside 'sigma' (sigma was ignored) was read
+    one way without a word; a NumPy array in a record raised "truth value ... is ambiguous"."""
+    from mbcal.measurements.sets import measurements_from_records
+
+    monkeypatch.chdir(tmp_path)
+    write(
+        tmp_path,
+        "m.json",
+        '[{"kind": "image_point", "camera": "left", "point": "lever.tip", "u": 1, "v": 2,\n "value": [3, 4]}]',
+    )
+    with pytest.raises(
+        MeasurementFileError, match=r"^m.json:1:\d+: the values are given twice: as 'value' and as 'u', 'v'"
+    ):
+        read_measurements("m.json", room)
+    write(tmp_path, "m.csv", "kind,camera,point,u,v,sigma,cov\nimage_point,left,lever.tip,1,2,1,1;0;0;1\n")
+    with pytest.raises(MeasurementFileError, match=r"^m.csv:2:\d+: both 'cov' and 'sigma' are given; give one"):
+        read_measurements("m.csv", room)
+    base = {"kind": "image_point", "camera": "left", "point": "lever.tip"}
+    got = measurements_from_records([{**base, "value": np.array([1.0, 2.0]), "cov": 4 * np.eye(2)}], room)
+    np.testing.assert_array_equal(got.measurements[0].value, [1.0, 2.0])
+    np.testing.assert_array_equal(got.measurements[0].cov, 4 * np.eye(2))
+    with pytest.raises(MeasurementFileError, match="record 1: expected a mapping"):
+        measurements_from_records(["hello"], room)
+    with pytest.raises(MeasurementFileError, match="configuration 'c1': expected a mapping"):
+        measurements_from_records([base | {"u": 1, "v": 2}], room, configurations={"c1": 0.3})

@@ -56,3 +56,20 @@ def test_a_failed_write_leaves_the_old_file_and_no_temporary_one(tmp_path):
         handle.write("partial")
         raise RuntimeError("interrupted")
     assert target.read_text() == "old" and [p.name for p in tmp_path.iterdir()] == ["out.txt"]
+
+
+def test_a_temporary_file_that_cannot_be_made_is_said_of_the_file_asked_for(tmp_path, monkeypatch):
+    """The error named '.r.json.wms7r9hz.part', a file the user never asked for."""
+    import errno
+    import tempfile
+
+    from mbcal.errors import OutputError
+    from mbcal.outputs import atomic_write
+
+    def refuse(*args, **kwargs):
+        raise OSError(errno.EACCES, "Permission denied")
+
+    monkeypatch.setattr(tempfile, "mkstemp", refuse)
+    with pytest.raises(OutputError, match=f"^cannot write {tmp_path / 'r.json'}: Permission denied"):
+        atomic_write(tmp_path / "r.json", "{}")
+    assert list(tmp_path.iterdir()) == []

@@ -57,22 +57,23 @@ def check(statements: Sequence[ast.Statement], path: str) -> Model:
     return model
 
 
-def check_at_nominal(model: Model) -> None:
-    """Dimensions must be positive and poses finite at the nominal parameter values.
+def check_at_nominal(model: Model, X: np.ndarray | None = None, where: str = "at the nominal values") -> None:
+    """Dimensions must be positive and poses finite at the nominal parameter values (or at ``X``,
+    all parameter values; ``where`` says which in the messages).
 
     Raises
     ------
     DimensionError
         At the first shape size, focal length, pose or point that is not.
     """
-    X = model.nominal
+    X = model.nominal if X is None else np.asarray(X, dtype=float)
     memo: dict[int, object] = {}
 
     def value(node: Node) -> np.ndarray:
         with np.errstate(all="ignore"):
             return np.asarray(ir.evaluate(node, X, memo, np), dtype=float)
 
-    check_shapes_at_nominal(model.shapes, value)
+    check_shapes_at_nominal(model.shapes, value, where)
     for cam in model.cameras:
         for key, node in zip(("fx", "fy"), cam.intrinsics[:2]):
             v = float(value(node))
@@ -81,9 +82,15 @@ def check_at_nominal(model: Model) -> None:
     for frame in model.frames:
         if frame.pose is not None and not np.all(np.isfinite(value(frame.pose))):
             raise DimensionError(
-                f"the pose of '{frame.name}' is not finite at the nominal values (a zero axis or quaternion?)",
+                f"the pose of '{frame.name}' is not finite {where} (a zero axis or quaternion?)",
                 frame.pose.span or frame.span,
+            )
+    for shape in model.shapes:
+        if shape.pose is not None and not np.all(np.isfinite(value(shape.pose))):
+            raise DimensionError(
+                f"the pose of shape '{shape.name}' is not finite {where} (a zero axis or quaternion?)",
+                shape.pose.span or shape.span,
             )
     for point in model.points:
         if not np.all(np.isfinite(value(point.position))):
-            raise DimensionError(f"point '{point.name}' is not finite at the nominal values", point.span)
+            raise DimensionError(f"point '{point.name}' is not finite {where}", point.span)

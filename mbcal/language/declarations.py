@@ -108,6 +108,7 @@ def build_model(c: Compiler) -> Model:
         targets=tuple(targets),
         templates=tuple(names.templates),
         files=tuple(dict.fromkeys(names.files)),
+        data_files=tuple(dict.fromkeys([*names.data_files, *(s.mesh.path for s in shapes if s.mesh is not None)])),
         warnings=tuple(names.warnings),
     )
 

@@ -223,6 +223,8 @@ class Model:
     targets: tuple[TargetInfo, ...] = ()
     templates: tuple[str, ...] = ()
     files: tuple[str, ...] = ()
+    data_files: tuple[str, ...] = ()
+    """The other files it reads (meshes, point files): with :attr:`files`, what an output must not replace."""
     warnings: tuple[str, ...] = ()
     # SHA-256 of the text a model was checked from when it was not read from a file
     # (load_model_text): the text is part of the model's identity for the compiled-program cache.

@@ -237,9 +237,12 @@ def _read_model_text(path: Path, span: SourceSpan | None) -> str:
     except OSError as err:
         raise IncludeError(f"cannot read {path}: {err.strerror}", span) from None
     try:
-        return data.decode("utf-8")
+        return data.decode("utf-8-sig")  # a byte-order mark (some Windows editors write one) is not text
     except UnicodeDecodeError as err:
-        raise IncludeError(f"{path} is not UTF-8 text (byte {err.start}); is it a binary file?", span) from None
+        line = data.count(b"\n", 0, err.start) + 1
+        column = err.start - (data.rfind(b"\n", 0, err.start) + 1) + 1
+        where = SourceSpan(display_path(path), line, column)
+        raise IncludeError(f"not UTF-8 text (byte {err.start}); is it a binary file?", where) from None
 
 
 def parse_file(path: str | os.PathLike[str]) -> tuple[ast.Statement, ...]:

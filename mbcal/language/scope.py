@@ -133,6 +133,8 @@ class Namespace:
         The measurement models named by ``measure``.
     files : list of str
         The model file and every file it includes.
+    data_files : list of str
+        The other files the model reads: meshes and point files.
     warnings : list of str
         Warnings for the model's summary.
     overrides : dict
@@ -151,6 +153,7 @@ class Namespace:
     joints: dict[int, Deferred] = field(default_factory=dict)
     measures: list[str] = field(default_factory=list)
     files: list[str] = field(default_factory=list)
+    data_files: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
     overrides: dict[str, tuple[ast.Override, Scope]] = field(default_factory=dict)
     global_scope: Scope = field(default_factory=lambda: Scope("", None, -1))

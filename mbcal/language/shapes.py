@@ -108,7 +108,9 @@ class ShapeChecker:
         return mesh
 
 
-def check_shapes_at_nominal(shapes: Sequence[ShapeInfo], value: Callable[[Node], np.ndarray]) -> None:
+def check_shapes_at_nominal(
+    shapes: Sequence[ShapeInfo], value: Callable[[Node], np.ndarray], where: str = "at the nominal values"
+) -> None:
     """Shape dimensions and mesh scales must be positive at the nominal parameter values.
 
     Parameters
@@ -129,4 +131,5 @@ def check_shapes_at_nominal(shapes: Sequence[ShapeInfo], value: Callable[[Node],
         bad = get_shape(shape.kind).invalid(values)
         if bad is not None:
             index, message = bad
+            message = message.replace("at the nominal values", where)
             raise DimensionError(message, shape.dims[index].span or shape.span)

@@ -180,6 +180,7 @@ def _file_points(
         if not isinstance(node, Const) or float(node.value) not in (2.0, 3.0):
             raise DimensionError("'columns' is 2 (x y) or 3 (x y z)", bound["columns"].span)
         columns = int(node.value)
+    checker.names.data_files.append(str(path.resolve()))
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:

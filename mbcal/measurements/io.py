@@ -36,6 +36,7 @@ import io
 import json
 import os
 import re
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -125,6 +126,19 @@ class _Lines:
         return line
 
 
+def _csv_rows(reader: Any, path: str) -> Iterator[list[str]]:
+    """The reader's rows; what the csv module cannot read (a cell over its size limit) is an error
+    at its line."""
+    while True:
+        try:
+            row = next(reader)
+        except StopIteration:
+            return
+        except csv.Error as err:
+            raise MeasurementFileError(f"unreadable CSV: {err}", SourceSpan(path, reader.line_num, 1)) from None
+        yield row
+
+
 def _read_csv(handle, path: str, builder: SetBuilder) -> None:
     """Read CSV rows from a file opened in binary, one line at a time: memory grows with the
     measurements, not with the file (its text is never held whole)."""
@@ -132,7 +146,7 @@ def _read_csv(handle, path: str, builder: SetBuilder) -> None:
     reader = csv.reader(lines)
     header: list[str] | None = None
     allowed = csv_columns()
-    for row in reader:
+    for row in _csv_rows(reader, path):
         line_no = reader.line_num
         if not row or all(not c.strip() for c in row):
             continue
@@ -302,13 +316,21 @@ def _duplicate_key_span(text: str, path: str, key: str) -> SourceSpan:
     return SourceSpan(path, 1, 1)
 
 
+def _json_integer(digits: str) -> int | float:
+    """An integer of the file; one with more digits than a float's range as a float (infinite,
+    then refused where it is read, at its place), not Python's error for a long integer."""
+    return int(digits) if len(digits) <= 308 else float(digits)
+
+
 def _load_json(text: str, path: str) -> Any:
     """The parsed file; invalid JSON and a key written twice in one object (json keeps the last
     silently) are errors at their place."""
     try:
-        return json.loads(text, object_pairs_hook=_unique_pairs)
+        return json.loads(text, object_pairs_hook=_unique_pairs, parse_int=_json_integer)
     except json.JSONDecodeError as err:
         raise MeasurementFileError(f"invalid JSON: {err.msg}", SourceSpan(path, err.lineno, err.colno)) from None
+    except RecursionError:
+        raise MeasurementFileError("invalid JSON: nested too deeply", SourceSpan(path, 1, 1)) from None
     except _DuplicateKeyError as dup:
         raise MeasurementFileError(
             f"key '{dup.key}' written twice in one object",

@@ -13,7 +13,7 @@ import math
 import re
 from collections.abc import Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 
@@ -134,6 +134,39 @@ class Columns:
     kinds: dict[str, KindColumns]
 
 
+def _blank(value: Any) -> bool:
+    """Not given: absent, None or an empty cell (an array is a value, never compared with "")."""
+    return value is None or (isinstance(value, str) and not value.strip())
+
+
+def _refuse(m: Measurement, what: str) -> NoReturn:
+    raise MeasurementFileError(f"measurement '{m.id}': {what}", m.where)
+
+
+def _wrong_size(m: Measurement, size: int) -> bool:
+    return np.shape(m.cov) != (size, size) or (m.value is not None and np.shape(m.value) != (size,))
+
+
+def _check_numbers(group: Sequence[Measurement], values: np.ndarray, has_value: np.ndarray, covs: np.ndarray) -> None:
+    """Values finite, covariances finite and positive definite: the readers check each record, and
+    this catches what was set in Python (``with_values``, ``dataclasses.replace``), where a NaN
+    ended as "the residuals are not finite at any starting point" naming nothing."""
+    bad = has_value & ~np.all(np.isfinite(values), axis=1)
+    if bad.any():
+        _refuse(group[int(np.argmax(bad))], f"its value is not finite ({values[int(np.argmax(bad))].tolist()})")
+    diagonal = np.einsum("nii->ni", covs)
+    bad = ~np.all(np.isfinite(covs), axis=(1, 2)) | np.any(diagonal <= 0, axis=1)
+    if not bad.any() and covs.shape[1] > 1:
+        off = covs - diagonal[:, :, None] * np.eye(covs.shape[1])
+        dense = np.any(off != 0, axis=(1, 2))
+        if dense.any():  # not positive definite: no Cholesky factor (the whitening needs one)
+            eig = np.full(len(covs), np.inf)
+            eig[dense] = np.linalg.eigvalsh(covs[dense]).min(axis=1)
+            bad = eig <= 0
+    if bad.any():
+        _refuse(group[int(np.argmax(bad))], "its σ or covariance must be finite and positive (definite)")
+
+
 def _build_columns(ms: Sequence[Measurement], config_names: list[str]) -> Columns:
     config_index = {c: i for i, c in enumerate(config_names)}
     by_kind: dict[str, list[int]] = {}
@@ -154,10 +187,15 @@ def _build_columns(ms: Sequence[Measurement], config_names: list[str]) -> Column
             refs[role] = (distinct, np.array([code[n] for n in names], dtype=np.int64))
         has_value = np.array([m.value is not None for m in group], dtype=bool)
         values = np.full((len(group), size), np.nan)
-        if has_value.all():
-            values[:] = [m.value for m in group]
-        elif has_value.any():
-            values[has_value] = [m.value for m in group if m.value is not None]
+        try:
+            covs = np.stack([m.cov for m in group]).astype(float)
+            if has_value.all():
+                values[:] = [m.value for m in group]
+            elif has_value.any():
+                values[has_value] = [m.value for m in group if m.value is not None]
+        except ValueError:  # a value or covariance of another size (set in Python: files are checked)
+            _refuse(next(m for m in group if _wrong_size(m, size)), f"its value or covariance is not of size {size}")
+        _check_numbers(group, values, has_value, covs)
         data_names = list(mm.data) if mm is not None else sorted(first.data)
         data = np.array([[m.data[k] for k in data_names] for m in group], dtype=float).reshape(len(group), -1)
         kinds[kind] = KindColumns(
@@ -167,7 +205,7 @@ def _build_columns(ms: Sequence[Measurement], config_names: list[str]) -> Column
             refs,
             values,
             has_value,
-            np.stack([m.cov for m in group]),
+            covs,
             data,
         )
     return Columns(config_names, kinds)
@@ -286,7 +324,7 @@ def parse_quantity(
         raise MeasurementFileError(f"{what}: expected a number, got {text!r}", where)
     beside = str(unit).strip() if unit is not None else ""
     if isinstance(text, (int, float)):
-        value = float(text)
+        value = _float(text, where, what)
         written = None
     else:
         s = str(text).strip()
@@ -326,9 +364,28 @@ def _unit_to_si(unit: str, where: SourceSpan | None, what: str, dimension: str |
     return factor
 
 
+# A number as a measurement file writes it: Python's float() also takes "1_000" and "infinity", which
+# no reader of a CSV or JSON file would take for a number.
+_PLAIN_NUMBER = re.compile(r"\s*[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?\s*|\s*[-+]?(?:nan|inf)\s*", re.I)
+
+
+def _float(value: int | float, where: SourceSpan | None, what: str, field: str | None = None) -> float:
+    """A JSON number as a float: an integer too large for one is an error there, not an OverflowError."""
+    try:
+        return float(value)
+    except OverflowError:
+        raise MeasurementFileError(
+            f"{what}: must be finite, got an integer too large for a number", where, field=field
+        ) from None
+
+
 def _number(text: Any, where: SourceSpan | None, what: str, field: str | None = None) -> float:
     if isinstance(text, bool) or text is None:
         raise MeasurementFileError(f"{what}: expected a number, got {text!r}", where, field=field)
+    if isinstance(text, str) and not _PLAIN_NUMBER.fullmatch(text):
+        raise MeasurementFileError(f"{what}: expected a number, got {text!r}", where, field=field)
+    if isinstance(text, int):
+        return _float(text, where, what, field)
     try:
         value = float(text)
     except (TypeError, ValueError):
@@ -532,8 +589,17 @@ class SetBuilder:
         if mm.implicit_value is not None:
             return np.full(mm.size, mm.implicit_value)
         raw: list[Any] = []
-        if "value" in record and record["value"] not in (None, "") and "value" not in mm.values:
+        if not _blank(record.get("value")) and "value" not in mm.values:
+            named = [n for n in mm.values if not _blank(record.get(n))]
+            if named:  # two ways of giving the values at once: which one was meant?
+                raise MeasurementFileError(
+                    f"the values are given twice: as 'value' and as {', '.join(repr(n) for n in named)}; give one",
+                    where,
+                    field=named[0],
+                )
             listed = record["value"]
+            if isinstance(listed, np.ndarray):
+                listed = listed.tolist()
             if not isinstance(listed, (list, tuple)):
                 listed = [listed]
             if len(listed) != mm.size:
@@ -563,7 +629,10 @@ class SetBuilder:
 
     def _covariance(self, record, mm: MeasurementModel, where, factor: float) -> np.ndarray:
         size = mm.size
-        if record.get("cov") not in (None, ""):
+        if not _blank(record.get("cov")):
+            given = [k for k in ("sigma", *(f"sigma_{n}" for n in mm.values)) if not _blank(record.get(k))]
+            if given:  # the covariance would win silently
+                raise MeasurementFileError(f"both 'cov' and '{given[0]}' are given; give one", where, field=given[0])
             raw = record["cov"]
             if isinstance(raw, str):
                 raw = [p for p in re.split(r"[;\s]+", raw.strip()) if p]
@@ -582,11 +651,11 @@ class SetBuilder:
         common = record.get("sigma")
         for name in mm.values:
             raw, column = record.get(f"sigma_{name}"), f"sigma_{name}"
-            if raw in (None, ""):
+            if _blank(raw):
                 raw, column = common, "sigma"
-            if isinstance(raw, (list, tuple)):
+            if isinstance(raw, (list, tuple, np.ndarray)):
                 raise MeasurementFileError("'sigma' is one number; use 'cov' for a matrix", where, field=column)
-            if raw in (None, ""):
+            if _blank(raw):
                 sigmas.append(mm.default_sigma)
                 continue
             s = _number(raw, where, "'sigma'", column) * factor
@@ -741,11 +810,19 @@ def measurements_from_records(
     for name, value in (known or {}).items():
         builder.known_value(name, value, None, None)
     for config, values in (configurations or {}).items():
+        if not isinstance(values, Mapping):
+            raise MeasurementFileError(
+                f"configuration '{config}': expected a mapping of parameter values, got {values!r}"
+            )
         builder.configuration(config, None)
         for name, value in values.items():
             builder.known_value(name, value, config, None)
     allowed = record_keys()
     for i, record in enumerate(records):
+        if not isinstance(record, Mapping):
+            raise MeasurementFileError(
+                f"record {i + 1}: expected a mapping (a dict like a JSON record), got {record!r}"
+            )
         lowered = {str(k).lower(): v for k, v in record.items()}
         for key in lowered:
             if key not in allowed:  # a typo ("sigam") would silently be the default

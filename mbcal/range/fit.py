@@ -44,6 +44,7 @@ k·c on r is k² times the loss with scale c on r/k: rows scaled by 1/k), and so
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -121,6 +122,38 @@ class FitOptions:
     priors: bool = True
     """Use the model's prior σ of the unknowns."""
     known: Mapping[str, float] | None = None
+
+    def __post_init__(self) -> None:
+        def bad(name: str, rule: str) -> SolverError:
+            return SolverError(f"FitOptions.{name} must be {rule}, got {getattr(self, name)!r}")
+
+        for name in ("voxel", "probe_sigma", "probe_gain", "assign_margin"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise bad(name, "a finite number ≥ 0")
+        for name in ("crop", "outlier_sigma", "coarse_distance"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise bad(name, "a finite number > 0")
+        if not (isinstance(self.graduated, (int, float)) and math.isfinite(self.graduated) and self.graduated >= 1):
+            raise bad("graduated", "a finite number ≥ 1 (1: off)")
+        if not 0 < self.misfit_fraction <= 1:
+            raise bad("misfit_fraction", "a share in (0, 1]")
+        for name, low in (
+            ("restarts", 1),
+            ("max_points", 1),
+            ("max_iterations", 1),
+            ("misfit_min_points", 1),
+            ("probe_rounds", 0),
+            ("seed", 0),
+        ):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= low):
+                raise bad(name, f"a whole number ≥ {low}")
+        if self.coarse not in ("auto", "always", "never"):
+            raise bad("coarse", "'auto', 'always' or 'never'")
+        if self.loss not in ("cauchy", "huber", "linear"):
+            raise bad("loss", "'cauchy', 'huber' or 'linear'")
 
 
 @dataclass(frozen=True)
@@ -734,6 +767,12 @@ def fit_scans(
     known = np.asarray(ps.known)
     x = ps.x0.copy()
     if initial:
+        # A name that is no estimated parameter is an error (as in calibrate); a copy of one for a
+        # configuration these scans do not have (the model manager's earlier batches) is not used.
+        estimated = {u.param.name for u in ps.unknowns}
+        strange = [k for k in initial if k not in ps.names and k.split("@", 1)[0] not in estimated]
+        if strange:
+            ps.from_dict({strange[0]: initial[strange[0]]})  # raises, with the closest names
         x = ps.from_dict({k: v for k, v in initial.items() if k in ps.names}, default=x)
     x_start = x.copy()
 

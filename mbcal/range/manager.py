@@ -176,8 +176,21 @@ class ModelManager:
         self.model_path = Path(model_path)
         self.model = load_model(model_path)
         self.out = Path(out)
-        self.estimate = list(estimate)
+        self.estimate = [estimate] if isinstance(estimate, str) else list(estimate)
+        if not self.estimate:
+            raise MbcalError("the model manager needs unknowns to estimate (estimate: names or globs)")
+        for pattern in self.estimate:
+            if not self.model.match_params(pattern):
+                self.model.param_index(pattern)  # raises, with the closest names
         self.options = options or FitOptions()
+        if not (isinstance(drift_k, (int, float)) and np.isfinite(drift_k) and drift_k > 0):
+            raise MbcalError(f"drift_k must be a number of σ > 0, got {drift_k!r}")
+        if sigma is not None and not (isinstance(sigma, (int, float)) and np.isfinite(sigma) and sigma > 0):
+            raise MbcalError(f"sigma must be a positive number of metres, got {sigma!r}")
+        if sensor is not None:
+            self.model.resolve("range", sensor)  # raises for a name no range sensor has
+        if frame is not None and frame != "world":
+            self.model.resolve("frame", frame)
         self.drift_k = drift_k
         self.set_process_noise(process_noise or {})  # checked before the folder is made
         _check_out_dir(self.out, [self.model_path, *self.model.files])

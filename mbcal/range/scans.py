@@ -21,13 +21,14 @@ and very grazing surfaces are cut.
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-from mbcal.errors import MeasurementFileError
+from mbcal.errors import MbcalError, MeasurementFileError
 from mbcal.language.model import Model, RangeInfo
 from mbcal.params import DEFAULT_CONFIGURATION
 from mbcal.range.readers import CLOUD_SUFFIXES, read_cloud, read_depth, read_npy
@@ -56,6 +57,18 @@ class Scan:
     sigma_rel: float = 0.0
     pixels: np.ndarray | None = None  # (N, 2) row, column of each point of a depth image
     focal: float = 0.0  # the depth camera's focal length (pixels), for down-sampling on its grid
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.sigma) and self.sigma > 0):
+            raise MbcalError(
+                f"scan {self.source or self.frame}: sigma must be a positive number of metres, got {self.sigma!r}"
+            )
+        if not (math.isfinite(self.sigma_rel) and self.sigma_rel >= 0):
+            raise MbcalError(f"scan {self.source or self.frame}: sigma_rel must be ≥ 0, got {self.sigma_rel!r}")
+        object.__setattr__(self, "points", np.asarray(self.points, dtype=float))  # a list, float32: (N, 3) float64
+        shape = self.points.shape
+        if len(shape) != 2 or shape[1] != 3:
+            raise MbcalError(f"scan {self.source or self.frame}: points must be an (N, 3) array, got shape {shape}")
 
     def __len__(self) -> int:
         return int(self.points.shape[0])

@@ -1,0 +1,141 @@
+"""The library refuses wrong input with an error that names it, where it used to give a silent
+wrong answer or a raw exception from deep inside (a read-only review of the Python API): truth
+values of no configuration's copy, bounds spread over every unknown, x of the wrong length, a
+scan's σ, measurement values set in Python that are not finite, an empty set."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+import mbcal
+from mbcal.errors import MbcalError, MeasurementFileError, ParameterError, SolverError
+from mbcal.solver import least_squares
+
+from conftest import MEASUREMENTS, MODELS
+
+
+@pytest.fixture(scope="module")
+def room():
+    return mbcal.load_model(MODELS / "teleexistence.mdl")
+
+
+@pytest.fixture(scope="module")
+def data(room):
+    plan = mbcal.read_measurements(MEASUREMENTS / "room_plan.csv", room)
+    return mbcal.simulate(room, plan, {"room.x": 0.01}, noise=1.0, seed=1)
+
+
+def test_simulate_refuses_truth_it_would_not_use_and_noise_that_is_no_multiplier(room):
+    plan = mbcal.read_measurements(MEASUREMENTS / "room_plan.csv", room)
+    nominal = mbcal.simulate(room, plan, {}, noise=0).measurements[0].value
+    moved = mbcal.simulate(room, plan, {"room.x": 0.01}, noise=0).measurements[0].value
+    assert not np.allclose(nominal, moved)
+    for key in ("room.x@default", "room.x@nope"):  # room.x is not per configuration: was the nominal value
+        with pytest.raises(ParameterError, match=f"'{key}' is not an unknown"):
+            mbcal.simulate(room, plan, {key: 0.01}, noise=0)
+    for noise in (-1.0, float("nan"), float("inf")):  # were: no noise, no noise, infinite values
+        with pytest.raises(SolverError, match="noise must be a finite number ≥ 0"):
+            mbcal.simulate(room, plan, {}, noise=noise)
+    with pytest.raises(SolverError, match="seed must be a whole number ≥ 0"):
+        mbcal.simulate(room, plan, {}, seed=-1)
+
+
+def test_least_squares_refuses_bounds_of_another_length_and_an_empty_start():
+    def line(x, t, y):
+        return x[0] + x[1] * t - y
+
+    t = np.linspace(0, 1, 5)
+    y = 1 + 2 * t
+    with pytest.raises(
+        SolverError, match=r"the lower bounds have shape \(1,\); give one number or one per unknown \(2,\)"
+    ):
+        least_squares(line, [[0.0, 0.0]], args=(t, y), bounds=([0.0], [1e-3]))  # was: both held at 1e-3
+    scalar = least_squares(line, [[0.5, 0.5]], args=(t, y), bounds=(0.0, 10.0))  # one number for all: fine
+    np.testing.assert_allclose(scalar.x_best, [1.0, 2.0], atol=1e-8)
+    with pytest.raises(SolverError, match="x0 must be"):
+        least_squares(line, np.zeros((1, 0)), args=(t, y))
+
+
+def test_a_parameter_vector_of_the_wrong_length_is_refused(room):
+    ps = mbcal.ParameterSet(room, ["room.*"])
+    for x in (np.array([0.1, 0.2]), np.arange(8.0)):  # were: padded by the gather's clamping, or cut
+        with pytest.raises(ParameterError, match=r"one value per unknown \(6\)"):
+            ps.param(x)
+        with pytest.raises(ParameterError, match=r"one value per unknown \(6\)"):
+            ps.X(x)
+
+
+def test_measurement_values_set_in_python_are_checked_like_a_files(room, data):
+    """Were: "every restart failed: the residuals are not finite" naming nothing, or a raw ValueError."""
+    values = [m.value.copy() for m in data]
+    values[3] = np.array([np.nan, 1.0])
+    ids = [m.id for m in data.measurements]
+    cases = [
+        (data.with_values(values), ids[3], "its value is not finite"),
+        (
+            data.with_values([np.zeros(3)] + [m.value for m in data][1:]),
+            ids[0],
+            "its value or covariance is not of size 2",
+        ),
+    ]
+    for cov in (np.zeros((2, 2)), -np.eye(2), np.array([[1.0, 2.0], [2.0, 1.0]])):
+        changed = [dataclasses.replace(data.measurements[0], cov=cov), *data.measurements[1:]]
+        bad = mbcal.MeasurementSet(changed, dict(data.known), data.configurations)
+        cases.append((bad, ids[0], "its σ or covariance must be finite and positive"))
+    for bad, which, message in cases:
+        with pytest.raises(MeasurementFileError, match=f"measurement '{which}': {message}"):
+            mbcal.calibrate(room, bad, ["room.*"], restarts=2)
+
+
+def test_an_empty_set_is_refused_and_one_name_is_one_unknown(room, data):
+    with pytest.raises(SolverError, match="the measurement set is empty"):
+        mbcal.calibrate(room, data.subset([False] * len(data)), ["room.*"], restarts=2)
+    one = mbcal.calibrate(room, data, "room.x", restarts=2)  # was: "no parameter matches 'r'"
+    assert one.names == ["room.x"]
+
+
+def test_scans_and_scan_fits_refuse_what_they_would_misread(room):
+    from mbcal.range.fit import FitOptions
+    from mbcal.range.scans import Scan
+
+    points = np.array([[0.0, 0.8, 1.1], [0.01, 0.8, 1.1], [0.0, 0.81, 1.1]])
+    for sigma in (-1e-3, 0.0, float("nan")):
+        with pytest.raises(MbcalError, match="sigma must be a positive number of metres"):
+            Scan(points, sigma=sigma)
+    with pytest.raises(MbcalError, match=r"points must be an \(N, 3\) array, got shape \(3, 2\)"):
+        Scan(points[:, :2])
+    assert Scan(points.tolist()).points.dtype == np.float64  # a list is taken as an array
+    for bad in ({"max_points": 0}, {"restarts": 0}, {"coarse": "sometimes"}, {"voxel": -1.0}, {"loss": "l2"}):
+        with pytest.raises(SolverError, match=f"FitOptions.{next(iter(bad))} must be"):
+            FitOptions(**bad)
+
+
+def test_the_model_manager_refuses_settings_it_cannot_use_before_making_its_folder(tmp_path):
+    from mbcal.range.manager import ModelManager
+
+    model = MODELS / "room_depth.mdl"
+    cases = [
+        ({"estimate": []}, "needs unknowns to estimate"),
+        ({"estimate": ["room.q"]}, "no param named 'room.q'"),
+        ({"estimate": ["room.*"], "drift_k": -1}, "drift_k must be a number of σ > 0"),
+        ({"estimate": ["room.*"], "frame": "nope"}, "no frame named 'nope'"),
+        ({"estimate": ["room.*"], "sensor": "nope"}, "no range named 'nope'"),
+        ({"estimate": ["room.*"], "sigma": 0.0}, "sigma must be a positive number"),
+    ]
+    for kwargs, message in cases:
+        with pytest.raises(MbcalError, match=message):
+            ModelManager(model, tmp_path / "out", **kwargs)
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_scan_fits_start_that_names_no_unknown_is_refused(room):
+    """fit_scans(initial=...) dropped names that are not unknowns: a typo left the start nominal."""
+    from mbcal.range.fit import fit_scans
+    from mbcal.range.scans import Scan
+
+    scan = Scan(np.array([[0.0, 0.8, 1.1], [0.01, 0.8, 1.1], [0.0, 0.81, 1.1]]))
+    with pytest.raises(ParameterError, match="'zz' is not an unknown"):
+        fit_scans(room, [scan], ["room.*"], initial={"zz": 5.0, "room.x": 0.05})
