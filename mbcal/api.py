@@ -128,6 +128,29 @@ class CalibrateOptions:
     entries, from its blocks beyond; ``structured`` from its blocks always; ``dense`` densely always.
     The blocks give the same report without any n × n or m × n matrix (docs/scale.md)."""
 
+    def __post_init__(self) -> None:
+        # Checked here, where the caller's mistake is still theirs: deep in the solver a float count
+        # or a dict for a config was a NumPy TypeError or an AttributeError naming mbcal's code.
+        def whole(value: Any) -> bool:
+            return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+
+        if not whole(self.restarts):
+            raise SolverError(f"restarts must be a whole number ≥ 1, got {self.restarts!r}")
+        if self.seed is not None and not (whole(self.seed) and self.seed >= 0):
+            raise SolverError(f"seed must be a whole number ≥ 0 or None, got {self.seed!r}")
+        for name, kind in (("config", SolverConfig), ("fit", FitConfig), ("observability", ObservabilityConfig)):
+            value = getattr(self, name)
+            if value is not None and not isinstance(value, kind):
+                raise SolverError(f"{name} must be a {kind.__name__} (or None), got {value!r}")
+        for name in ("known", "initial"):
+            value = getattr(self, name)
+            if value is not None and not isinstance(value, Mapping):
+                raise SolverError(f"{name} must be a mapping of parameter names to values, got {value!r}")
+        t = self.outlier_threshold
+        if not (isinstance(t, (int, float, np.floating)) and math.isfinite(t) and t >= 0):
+            raise SolverError(f"outlier_threshold must be a finite number of σ ≥ 0, got {t!r}")
+        _check_analysis(self.analysis)
+
     def updated(self, changes: Mapping[str, Any]) -> CalibrateOptions:
         """A copy with some fields changed; an unknown field name is an error that lists the fields."""
         names = [f.name for f in fields(self)]

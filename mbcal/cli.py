@@ -368,6 +368,17 @@ def _background(model, camera: str, path: str, option: str) -> np.ndarray:
     return image
 
 
+def _distinct(paths: Sequence[str]) -> None:
+    """The same input file named twice would be read twice: its ids clash ("duplicate id 'hub'
+    (first at the very same place)") or, for scans, its points count twice."""
+    seen: dict[Path, str] = {}
+    for path in paths:
+        key = Path(path).resolve()
+        if key in seen:
+            raise MbcalError(f"{path} is given twice" + (f" (as {seen[key]})" if seen[key] != path else ""))
+        seen[key] = path
+
+
 _OUTPUT_OPTIONS = {"json": "--json", "write_model": "--write-model", "plot": "--plot", "output": "-o/--output"}
 
 
@@ -414,6 +425,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
     if not files and not scans:
         raise MbcalError("solve needs measurement files (.csv, .json) or scans (--scan FILE)")
     inputs = [args.model, *files, *scans]
+    _distinct(files + scans)
     check_size(args.restarts)  # before reading anything
     _check_sigmas(args)
     fit = _fit_config(args)
@@ -624,6 +636,7 @@ def cmd_calibrate_camera(args: argparse.Namespace) -> int:
     from mbcal.workflows.cameras import calibrate_cameras, reprojection_images  # lazy: keeps JAX out of 'mbcal check'
 
     inputs = [args.model, *args.measurements]
+    _distinct(args.measurements)
     _check_outputs(args, inputs)
     model = _load(args.model, args, inputs)
     data = merge_measurements([read_measurements(path, model) for path in args.measurements], model)
@@ -1245,7 +1258,8 @@ def _register_commands(sub) -> None:
         a line in OUT/history.jsonl (estimate, σ, χ², time), OUT/state.json and the calibrated
         model OUT/MODEL.calibrated.mdl (atomic; never the input).  Flags a drift (an unknown moved
         more than --drift-k σ) and names structural misfits.  Safe to kill at any moment; a
-        restart resumes from the history and skips the files already taken.
+        restart resumes from the history and skips the files already taken.  With --once the exit
+        status is 1 when an update of that run was rejected.
         """,
         """
         mbcal watch models/room_depth.mdl --scans incoming/ --out managed/ --estimate 'room.*' \\
@@ -1265,7 +1279,9 @@ def _register_commands(sub) -> None:
         help="expected change per update, with a unit (0.5deg) or SI; repeatable",
     )
     p.add_argument("--poll", type=_positive, default=1.0, metavar="S", help="seconds between looks (default 1)")
-    p.add_argument("--once", action="store_true", help="process the files there now and exit")
+    p.add_argument(
+        "--once", action="store_true", help="process the files there now and exit (1 if an update was rejected)"
+    )
     p.add_argument(
         "--json",
         action="store_true",
@@ -1315,6 +1331,7 @@ def _range_arguments(p: argparse.ArgumentParser) -> None:
 def cmd_fit(args: argparse.Namespace) -> int:
     from mbcal.range.manager import fit_files  # lazy: keeps JAX out of 'mbcal check'
 
+    _distinct(args.scans)
     _check_outputs(args, [args.model, *args.scans])
     fit, written = fit_files(
         args.model,
@@ -1356,7 +1373,11 @@ def cmd_watch(args: argparse.Namespace) -> int:
         sigma=args.sigma,
     )
 
+    rejected: list[int] = []
+
     def report(u) -> None:
+        if not u.accepted:
+            rejected.append(u.seq)
         if args.json:  # one strict JSON object per line (Update.to_json: inf and NaN are null)
             print(json.dumps(u.to_json(), allow_nan=False), flush=True)
             return
@@ -1377,7 +1398,8 @@ def cmd_watch(args: argparse.Namespace) -> int:
         )
     end_start_up()  # it may wait long for the first scan: collections resume now (mbcal._collector)
     manager.watch(args.scans, poll=args.poll, once=args.once, report=report)
-    return 0
+    # --once in a script: an update of this run that was rejected is not a success
+    return EXIT_UNTRUSTED if rejected else EXIT_OK
 
 
 # ---- the parser ---------------------------------------------------------------------------------

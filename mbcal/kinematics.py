@@ -264,6 +264,9 @@ class Kinematics:
             X = np.asarray(values, dtype=float)
             if X.shape != (len(model.params),):
                 raise ParameterError(f"values must have one entry per parameter ({len(model.params)}), got {X.shape}")
+            if not np.all(np.isfinite(X)):
+                bad = model.params[int(np.argmin(np.isfinite(X)))].name
+                raise ParameterError(f"values: {bad} is not a finite number ({X[model.param_index(bad)]})")
         self.values = np.array(X, dtype=float)
         self.tool = np.zeros(3) if tool is None else np.asarray(tool, dtype=float).reshape(3)
         self.base = np.eye(4) if base is None else np.asarray(base, dtype=float).reshape(4, 4)

@@ -29,7 +29,14 @@ def parameter_vector(model: Model, values: Mapping[str, float] | None = None) ->
     """X with the model's nominal values, overridden by ``values`` (SI units, by name)."""
     X = model.nominal.copy()
     for name, value in (values or {}).items():
-        X[model.param_index(name)] = float(value)
+        index = model.param_index(name)
+        try:  # a number, a NumPy or JAX scalar; not text, a flag, an array or None
+            number = None if isinstance(value, (str, bytes, bool)) or np.ndim(value) != 0 else float(value)
+        except (TypeError, ValueError):
+            number = None
+        if number is None or not np.isfinite(number):  # a NaN would pass through the whole scene
+            raise ParameterError(f"{name}: a value must be a finite number (SI units), got {value!r}")
+        X[index] = number
     return X
 
 

@@ -83,6 +83,13 @@ class Problem:
         known: Mapping[str, float] | None = None,
         priors: bool = True,
     ):
+        if not isinstance(model, Model):
+            raise SolverError(f"model must be a Model (mbcal.load_model), got {type(model).__name__}")
+        if not isinstance(measurements, MeasurementSet):
+            raise SolverError(
+                f"measurements must be a MeasurementSet (mbcal.read_measurements, measurements_from_records), "
+                f"got {type(measurements).__name__}"
+            )
         self.model = model
         self.measurements = measurements
         self._fingerprint: str | None = None

@@ -44,7 +44,13 @@ class CameraView:
         return (p_world - t) @ R
 
     def project(self, p_world: Array) -> Array:
-        """Pixels (..., 2) of world points (..., 3)."""
+        """Pixels (..., 2) of world points (..., 3).
+
+        The pinhole projection of any point: one behind the camera (z ≤ 0 in :meth:`to_camera`'s
+        frame) gets a pixel too, mirrored through the optical centre, as from OpenCV's
+        ``projectPoints``, and a differentiable one.  Whether a point can be seen at all is
+        ``to_camera(p)[..., 2] > 0`` and inside the image; a calibration leaves out, and reports,
+        measurements that cannot be made (``Problem.visible``)."""
         return project_camera_points(self.to_camera(p_world), self.intrinsics, self.distortion)
 
     @property

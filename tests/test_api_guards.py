@@ -139,3 +139,38 @@ def test_a_scan_fits_start_that_names_no_unknown_is_refused(room):
     scan = Scan(np.array([[0.0, 0.8, 1.1], [0.01, 0.8, 1.1], [0.0, 0.81, 1.1]]))
     with pytest.raises(ParameterError, match="'zz' is not an unknown"):
         fit_scans(room, [scan], ["room.*"], initial={"zz": 5.0, "room.x": 0.05})
+
+
+def test_calibrate_options_of_the_wrong_kind_are_named(room, data):
+    """Were a NumPy TypeError, an AttributeError naming mbcal's code, or silently accepted
+    (a negative outlier threshold listed every measurement)."""
+    cases = [
+        ({"restarts": 2.5}, "restarts must be a whole number ≥ 1, got 2.5"),
+        ({"restarts": "4"}, "restarts must be a whole number ≥ 1, got '4'"),
+        ({"config": {"loss": "huber"}}, "config must be a SolverConfig"),
+        ({"fit": 0.01}, "fit must be a FitConfig"),
+        ({"outlier_threshold": -1.0}, "outlier_threshold must be a finite number of σ ≥ 0"),
+        ({"outlier_threshold": float("nan")}, "outlier_threshold must be a finite number of σ ≥ 0"),
+        ({"known": [("room.x", 0.0)]}, "known must be a mapping"),
+    ]
+    for kwargs, message in cases:
+        with pytest.raises(SolverError, match=message):
+            mbcal.calibrate(room, data, ["room.*"], **kwargs)
+    with pytest.raises(SolverError, match="measurements must be a MeasurementSet"):
+        mbcal.calibrate(room, list(data), ["room.*"])
+
+
+def test_values_given_by_name_must_be_finite_numbers(room):
+    from mbcal.kinematics import Kinematics
+    from mbcal.modeling import modeler
+
+    for value in ("1 cm", float("nan"), None):
+        with pytest.raises(ParameterError, match="room.x: a value must be a finite number"):
+            modeler(room, {"room.x": value})
+    arm = mbcal.load_model(MODELS / "arm7.mdl")
+    with pytest.raises(ParameterError, match="arm.offset2: a value must be a finite number"):
+        Kinematics(arm, "hand.tip", chain="arm.q*", values={"arm.offset2": float("nan")})
+    values = arm.nominal.copy()
+    values[arm.param_index("arm.offset2")] = np.inf
+    with pytest.raises(ParameterError, match="values: arm.offset2 is not a finite number"):
+        Kinematics(arm, "hand.tip", chain="arm.q*", values=values)

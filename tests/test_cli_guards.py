@@ -303,3 +303,9 @@ def test_calibrate_camera_checks_its_images_before_the_solve(tmp_path, capsys, m
         )
         assert code == 2 and message in capsys.readouterr().err
     assert solved == []  # refused before the solve
+
+
+def test_an_input_file_given_twice_is_refused(clicks, capsys):
+    """It was read twice: 'duplicate id (first at lever.csv:2:1)', pointing at the very same place."""
+    assert cli.main(["solve", LEVER, str(clicks), str(clicks), "--estimate", "lever.angle", "-q"]) == 2
+    assert f"{clicks} is given twice" in capsys.readouterr().err

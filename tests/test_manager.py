@@ -202,7 +202,7 @@ def test_watch_json_prints_one_strict_json_object_per_update(tmp_path, capsys):
 
         return json.loads(text, parse_constant=refuse)
 
-    assert main([*argv, "--json"]) == 0
+    assert main([*argv, "--json"]) == 1  # an update of this run was rejected
     lines = capsys.readouterr().out.splitlines()
     bad, good = (strict(line) for line in lines)
     assert (bad["seq"], good["seq"]) == (1, 2)
@@ -210,7 +210,7 @@ def test_watch_json_prints_one_strict_json_object_per_update(tmp_path, capsys):
     assert good["accepted"] and not good["error"]
     assert good == strict((out / "history.jsonl").read_text().splitlines()[1])  # the journal's record
     assert abs(good["values"]["room.x"] - ROOM_TRUTH["room.x"]) < 3 * good["std"]["room.x"]
-    # a restart with nothing new prints no line on stdout; 'resumed' goes to stderr
+    # a restart with nothing new prints no line on stdout (and rejects nothing: exit 0); 'resumed' goes to stderr
     assert main([*argv, "--json"]) == 0
     captured = capsys.readouterr()
     assert captured.out == "" and "resumed: 2 updates" in captured.err

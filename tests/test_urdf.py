@@ -390,3 +390,27 @@ def test_a_value_the_urdf_reader_cannot_take_is_located_at_its_attribute(tmp_pat
     assert "could not convert string to float: 'abc'" in info.value.message
     assert (info.value.span.line, info.value.span.column) == (line, column)
     assert bad.splitlines()[line - 1][column - 1 : column + 2] == "abc"
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (('xyz="0 0 0"', 'xyz="nan 0 0"'), "its <origin> is not finite numbers"),
+        (('<axis xyz="0 0 1"/>', '<axis xyz="0 0 0"/>'), "its <axis> must be a finite, non-zero vector"),
+        (('lower="-1" upper="1"', 'lower="1" upper="-1"'), "its <limit> must have lower ≤ upper"),
+    ],
+)
+def test_a_joints_bad_numbers_are_errors_at_the_joints_line(tmp_path, change, message):
+    """They were errors at a line of the .mdl written from the URDF ('robot.urdf.mdl:6:17: unexpected
+    'm''), a file the user never had."""
+    text = (
+        '<?xml version="1.0"?>\n<robot name="r">\n  <link name="base"/>\n  <link name="a"/>\n'
+        '  <joint name="j" type="revolute">\n    <parent link="base"/>\n    <child link="a"/>\n'
+        '    <origin xyz="0 0 0" rpy="0 0 0"/>\n    <axis xyz="0 0 1"/>\n'
+        '    <limit lower="-1" upper="1" effort="1" velocity="1"/>\n  </joint>\n</robot>\n'
+    )
+    path = tmp_path / "robot.urdf"
+    path.write_text(text.replace(*change))
+    with pytest.raises(mbcal.MbcalError) as info:
+        mbcal.load_model(path)
+    assert str(info.value).startswith(f"{path}:5:1: joint 'j': {message}")

@@ -197,6 +197,25 @@ def read_robot(path: str | os.PathLike[str]) -> _Robot:
             )
         if joint.type not in (*MOVING, "fixed"):
             raise robot.error(f"joint '{joint.name}' has an unknown type '{joint.type}'", "joint", joint.name)
+        # checked here, at the joint's line: in the .mdl written from it they were errors at a line of
+        # a file that does not exist ('robot.urdf.mdl:6:17: unexpected m ... nan m')
+        if joint.origin is not None and not np.all(np.isfinite(np.asarray(joint.origin, dtype=float))):
+            raise robot.error(f"joint '{joint.name}': its <origin> is not finite numbers", "joint", joint.name)
+        if joint.type in MOVING:
+            axis = np.asarray(joint.axis if joint.axis is not None else (1.0, 0.0, 0.0), dtype=float)
+            if not (np.all(np.isfinite(axis)) and np.linalg.norm(axis) > 0):
+                raise robot.error(
+                    f"joint '{joint.name}': its <axis> must be a finite, non-zero vector", "joint", joint.name
+                )
+        limit = joint.limit
+        if limit is not None and joint.type in ("revolute", "prismatic"):
+            low, high = (getattr(limit, side, None) for side in ("lower", "upper"))
+            if low is not None and high is not None and not (np.isfinite(low) and np.isfinite(high) and low <= high):
+                raise robot.error(
+                    f"joint '{joint.name}': its <limit> must have lower ≤ upper, got lower={low:g} upper={high:g}",
+                    "joint",
+                    joint.name,
+                )
         if joint.child in parent_of:
             raise robot.error(
                 f"link '{joint.child}' is the child of two joints ('{parent_of[joint.child]}' and '{joint.name}')",
