@@ -111,14 +111,27 @@ class MbcalError(Exception):
             source = _source_line(self.span.path, self.span.line)
             if source is not None:
                 source = source.replace("\t", " ")
+                column = self.span.column
+                if len(source) > _SHOWN:  # a one-line JSON file of 40 kB: the part around the column
+                    start = max(0, min(column - 1 - _SHOWN // 2, len(source) - _SHOWN))
+                    source = (
+                        ("…" if start else "")
+                        + source[start : start + _SHOWN]
+                        + ("…" if start + _SHOWN < len(source) else "")
+                    )
+                    column -= start - (1 if start else 0)
                 lines.append(f"    {source}")
                 width = 1
                 if self.span.end_line == self.span.line and self.span.end_column:
                     width = max(1, self.span.end_column - self.span.column)
-                lines.append("    " + " " * (self.span.column - 1) + "^" * min(width, 60))
+                lines.append("    " + " " * (column - 1) + "^" * min(width, 60))
         if self.hint:
             lines.append(f"hint: {self.hint}")
         return "\n".join(lines)
+
+
+_SHOWN = 160
+"""The most characters of a source line an error shows (around its column)."""
 
 
 class MdlError(MbcalError):

@@ -431,6 +431,8 @@ class Kinematics:
         Forward
             position (3,), rotation (3, 3), jacobian (6, n), world axes.
         """
+        if jnp.shape(theta) != (self.n,):  # known while tracing too
+            raise KinematicsError(f"θ must hold one value per chain variable ({self.n}), got shape {jnp.shape(theta)}")
         if self.fast:
             p, R, J = self._serial(theta)
             assert J is not None
@@ -627,6 +629,9 @@ class Kinematics:
         """
         if restarts < 1:
             raise KinematicsError(f"restarts must be ≥ 1, got {restarts}")
+        for name, value in (("tolerance", tolerance), ("angle_tolerance", angle_tolerance)):
+            if not (np.isfinite(value) and value > 0):  # a negative one called every reached target unreached
+                raise KinematicsError(f"{name} must be a positive number, got {value}")
         config = config or SolverConfig(max_iterations=200, ftol=1e-15, xtol=1e-15, gtol=1e-15)
         with float64():
             targets = np.asarray(target, dtype=float)
@@ -637,7 +642,12 @@ class Kinematics:
             B = targets.shape[0]
             rotations = None
             if orientation is not None:
-                rotations = np.asarray(orientation, dtype=float).reshape(-1, 3, 3)
+                given = np.asarray(orientation, dtype=float)
+                if given.shape[-2:] != (3, 3) or given.ndim not in (2, 3):
+                    raise KinematicsError(
+                        f"IK orientations must be (3, 3) or (B, 3, 3) rotations, got shape {given.shape}"
+                    )
+                rotations = given.reshape(-1, 3, 3)
                 if rotations.shape[0] == 1 and B > 1:
                     rotations = np.repeat(rotations, B, axis=0)
                 if rotations.shape[0] != B:

@@ -181,6 +181,14 @@ class SolverConfig:
             raise SolverError(f"loss_scale must be positive, got {scale}")
         if self.max_iterations < 1:
             raise SolverError("max_iterations must be at least 1")
+        for name in ("ftol", "xtol", "gtol"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0):  # a negative one never stops: the loop hits its cap
+                raise SolverError(f"{name} must be a finite number ≥ 0, got {value}")
+        if not (np.isfinite(self.lambda_init) and self.lambda_init > 0 and self.lambda_max > self.lambda_init):
+            raise SolverError(
+                f"lambda_init must be positive and below lambda_max, got {self.lambda_init} and {self.lambda_max}"
+            )
 
 
 def robust(loss: Loss | str, scale: float, s: Array) -> tuple[Array, Array]:

@@ -174,3 +174,25 @@ def test_values_given_by_name_must_be_finite_numbers(room):
     values[arm.param_index("arm.offset2")] = np.inf
     with pytest.raises(ParameterError, match="values: arm.offset2 is not a finite number"):
         Kinematics(arm, "hand.tip", chain="arm.q*", values=values)
+
+
+def test_solver_settings_kinematics_arguments_and_model_text_are_checked():
+    from mbcal.errors import KinematicsError, MdlError
+    from mbcal.kinematics import Kinematics
+    from mbcal.solver import SolverConfig
+
+    for kwargs in ({"ftol": -1.0}, {"gtol": float("nan")}, {"lambda_init": 0.0}, {"lambda_init": 1e17}):
+        with pytest.raises(SolverError, match="must be"):
+            SolverConfig(**kwargs)
+    arm = mbcal.load_model(MODELS / "arm7.mdl")
+    kin = Kinematics(arm, "hand.tip", chain="arm.q*")
+    with pytest.raises(KinematicsError, match=rf"one value per chain variable \({kin.n}\), got shape \(6,\)"):
+        kin.forward_single(np.zeros(6))  # was an IndexError from the chain's code
+    target = np.asarray(kin.position(kin.theta0))
+    with pytest.raises(KinematicsError, match="tolerance must be a positive number"):
+        kin.ik(target, tolerance=-1.0)  # called a reached target unreached
+    with pytest.raises(KinematicsError, match=r"IK orientations must be \(3, 3\) or \(B, 3, 3\)"):
+        kin.ik(target, orientation=np.eye(2))
+    for text in (None, b"param a = 1 m\n"):
+        with pytest.raises(MdlError, match="model text must be a str"):
+            mbcal.load_model_text(text)  # type: ignore[arg-type]

@@ -751,3 +751,14 @@ def test_values_or_sigmas_given_two_ways_are_refused_and_numpy_arrays_are_values
         measurements_from_records(["hello"], room)
     with pytest.raises(MeasurementFileError, match="configuration 'c1': expected a mapping"):
         measurements_from_records([base | {"u": 1, "v": 2}], room, configurations={"c1": 0.3})
+
+
+def test_an_error_in_a_long_line_shows_the_part_around_its_column(tmp_path):
+    """A one-line JSON file of 40 kB was echoed whole under its error."""
+    from mbcal.errors import SourceSpan
+
+    path = tmp_path / "long.json"
+    path.write_text("x" * 20_000 + "BAD" + "y" * 20_000 + "\n")
+    shown = MeasurementFileError("bad", SourceSpan(str(path), 1, 20_001)).render().splitlines()
+    source, caret = shown[1], shown[2]
+    assert len(source) < 200 and source[caret.index("^") : caret.index("^") + 3] == "BAD"

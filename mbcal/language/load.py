@@ -44,6 +44,11 @@ def load_model(path: str | os.PathLike[str]) -> Model:
 
 def load_model_text(text: str, path: str = "<string>") -> Model:
     """Parse and check model text; includes and meshes resolve relative to ``path``."""
+    if not isinstance(text, str):
+        raise MdlError(
+            f"model text must be a str, got {type(text).__name__}"
+            + (" (decode it first)" if isinstance(text, bytes) else "")
+        )
     try:
         statements = parse_text_with_includes(text, path)
         with deep_recursion():
