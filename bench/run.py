@@ -567,6 +567,14 @@ def report(results: dict, path: Path, plot: str | None) -> str:
             "options only in its map `xla_backend_extra_options`, which JAX's per-program compiler",
             "options cannot set (XLA refuses a string for it): only `XLA_FLAGS` can, for every JAX",
             "program of the process, and mbcal sets options for its own programs only: not taken.",
+            "A tiered compile — the first call on a program compiled at a lower LLVM level, the full",
+            "one compiled beside it for the calls after — was measured and not built: the levels",
+            "do not give the same bits (the arm's restarts end after other iteration counts even at",
+            "level 2; level 0, the only one that halves the compile, 0.81–0.90 → 0.39 s, runs the",
+            "warm solve 9× (room) and 3.4× (arm) slower), so a first call would answer differently",
+            "from the next.  Tracing the residual once to a flat jaxpr (JAX's jitted `jax.numpy`",
+            "operators inlined) and the solver's transformations over that: trace −0.09 s, but the",
+            "flat trace itself +0.06 s (the same programs, bit for bit): not taken.",
             "",
         ]
         rows = []

@@ -199,6 +199,16 @@ CSV_ERRORS = {
         "m.csv:2:1: unreadable CSV: field larger than field limit",
         None,
     ),
+    "unclosed_quote": (
+        'kind,camera,point,u,v\nimage_point,left,"lever.tip,1,2\nimage_point,left,lever.hub,1,2\n',
+        "m.csv:2:1: unreadable CSV: a quoted cell opened in this row is never closed",
+        None,
+    ),
+    "text_after_a_quote": (
+        'kind,camera,point,u,v\nimage_point,left,"lever"tip,1,2\n',
+        "m.csv:2:1: unreadable CSV: ',' expected after '\"'",
+        None,
+    ),
     "empty": ("", "m.csv:1:1: empty file: no header row", None),
     "header_only": ("kind,camera,point,u,v\n", "m.csv:1:1: no measurements", None),
 }

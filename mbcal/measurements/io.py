@@ -130,12 +130,16 @@ def _csv_rows(reader: Any, path: str) -> Iterator[list[str]]:
     """The reader's rows; what the csv module cannot read (a cell over its size limit) is an error
     at its line."""
     while True:
+        start = reader.line_num + 1  # the record's first line (a quoted cell may span lines)
         try:
             row = next(reader)
         except StopIteration:
             return
         except csv.Error as err:
-            raise MeasurementFileError(f"unreadable CSV: {err}", SourceSpan(path, reader.line_num, 1)) from None
+            text = str(err)
+            if "unexpected end of data" in text:
+                text = "a quoted cell opened in this row is never closed"
+            raise MeasurementFileError(f"unreadable CSV: {text}", SourceSpan(path, start, 1)) from None
         yield row
 
 
@@ -143,7 +147,7 @@ def _read_csv(handle, path: str, builder: SetBuilder) -> None:
     """Read CSV rows from a file opened in binary, one line at a time: memory grows with the
     measurements, not with the file (its text is never held whole)."""
     lines = _Lines(handle, path)
-    reader = csv.reader(lines)
+    reader = csv.reader(lines, strict=True)  # text after a closing quote is an error, not glued on
     header: list[str] | None = None
     allowed = csv_columns()
     for row in _csv_rows(reader, path):
