@@ -92,7 +92,9 @@ class CalibrateOptions:
     config: SolverConfig | None = None
     """Tolerances, iteration limit, robust loss (default: :class:`SolverConfig`)."""
     known: Mapping[str, float] | None = None
-    """Known values (SI) that override the model and the measurement file."""
+    """Known values (SI) that override the model and the measurement file.  A parameter that is
+    also estimated is not held: its value here is where its first restart starts (as the model's
+    nominal value would be); to hold it, leave it out of ``estimate``."""
     priors: bool = True
     """Use the model's prior σ of the unknowns."""
     scale_covariance: bool = False
@@ -500,8 +502,8 @@ def calibrate(
     if solved.best < 0:
         raise SolverError(
             "every restart failed: the residuals are not finite at any starting point "
-            "(a point behind a camera? a zero-length axis?)",
-            hint="check the model's nominal values and the search ranges",
+            "(a point behind a camera? a zero-length axis? values or σ so far apart that r² overflows?)",
+            hint="check the model's nominal values, the search ranges and the measurements' magnitudes",
         )
     x = solved.x_best
     say("analysing observability")

@@ -1073,7 +1073,9 @@ def _resolve_chain(
     along = _joint_variables(model, path)
     if chain is None:
         if not along:
-            raise KinematicsError(f"no joint moves '{target}': name the chain's variables (chain=...)")
+            raise KinematicsError(
+                f"no joint moves '{target}': name the chain's variables (--chain GLOB, or chain=... in Python)"
+            )
         return along
     items = [s.strip() for s in chain.split(",")] if isinstance(chain, str) else [str(s).strip() for s in chain]
     items = [s for s in items if s]
