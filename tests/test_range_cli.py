@@ -112,3 +112,13 @@ def test_fit_writes_its_json_by_the_schema(tmp_path, capsys):
     captured = capsys.readouterr()
     jsonschema.validate(json.loads(captured.out), schema)
     assert "room.x" in captured.err
+
+
+def test_a_fit_that_fails_leaves_no_output_folder(tmp_path, capsys):
+    """`mbcal fit --out DIR` made DIR before the fit, and left it empty when the fit failed."""
+    far = tmp_path / "far.npy"
+    np.save(far, 100.0 + np.random.default_rng(0).normal(size=(50, 3)))  # nowhere near the model
+    out = tmp_path / "out"
+    assert main(["fit", ROOM, str(far), "--estimate", "room.*", "--out", str(out)]) == 2
+    assert "scan points lie within" in capsys.readouterr().err
+    assert not out.exists()

@@ -37,7 +37,7 @@ from mbcal.errors import MbcalError, OutputError
 from mbcal.export.mdl import write_calibrated_model
 from mbcal.language.load import load_model
 from mbcal.language.model import Model
-from mbcal.outputs import atomic_write, finite_or_null
+from mbcal.outputs import atomic_write, check_output_folder, finite_or_null
 from mbcal.range.fit import FitOptions, Prior, ScanFit, fit_scans
 from mbcal.range.readers import CLOUD_SUFFIXES, DEPTH_SUFFIXES, write_ply
 from mbcal.range.scans import Scan, load_scan
@@ -89,6 +89,7 @@ class Update:
 
 def _outputs(fit: ScanFit, model: Model, out: Path, stem: str, note: Sequence[str]) -> list[Path]:
     """The calibrated model, the outliers PLY and the report JSON, each written atomically."""
+    out.mkdir(parents=True, exist_ok=True)
     written = []
     mdl = out / f"{stem}.calibrated.mdl"
     write_calibrated_model(model, fit.values, mdl, std=fit.std, note=list(note))
@@ -102,9 +103,16 @@ def _outputs(fit: ScanFit, model: Model, out: Path, stem: str, note: Sequence[st
     return written
 
 
-def _check_out_dir(out: Path, inputs: Sequence[str | os.PathLike]) -> None:
+def _check_out_dir(out: Path, inputs: Sequence[str | os.PathLike], *, make: bool = True) -> None:
+    """``--out`` must be a folder that holds no input; ``make``: made now (the manager's journal
+    needs it), else only checked (``mbcal fit`` makes it when it writes: a fit that fails leaves
+    no empty folder behind)."""
     if out.exists() and not out.is_dir():
         raise OutputError(f"{out} is a file; --out needs a folder")
+    if not make:
+        check_output_folder(out, "--out")
+        if not out.exists():
+            return
     out.mkdir(parents=True, exist_ok=True)
     resolved = {Path(i).resolve() for i in inputs}
     for p in out.iterdir():
@@ -127,7 +135,7 @@ def fit_files(
     model = load_model(model_path)
     scans = [load_scan(p, model, sensor=sensor, frame=frame, sigma=sigma) for p in scan_paths]
     if out is not None:
-        _check_out_dir(Path(out), [model_path, *scan_paths, *model.files])
+        _check_out_dir(Path(out), [model_path, *scan_paths, *model.files], make=False)
     fit = fit_scans(model, scans, estimate, options)
     written: list[Path] = []
     if out is not None:
