@@ -57,6 +57,7 @@ from mbcal.structured import (
     square_root_information,
     structure_of,
 )
+from mbcal.units import real
 
 __all__ = [
     "calibrate",
@@ -744,8 +745,10 @@ def simulate(
         image); otherwise they raise an error.
     """
     truth = dict(truth or {})
-    if not (isinstance(noise, (int, float)) and math.isfinite(noise) and noise >= 0):
+    amount = real(noise)
+    if amount is None or not (math.isfinite(amount) and amount >= 0):
         raise SolverError(f"noise must be a finite number ≥ 0 (a multiplier of each σ), got {noise!r}")
+    noise = amount
     if seed is not None and not (isinstance(seed, (int, np.integer)) and seed >= 0):
         raise SolverError(f"seed must be a whole number ≥ 0 or None, got {seed!r}")
     names = list(dict.fromkeys(str(k).split("@")[0] for k in truth))

@@ -35,7 +35,14 @@ from mbcal import __version__  # noqa: E402
 from mbcal._collector import end_start_up, pause_start_up  # noqa: E402
 from mbcal.cache import CACHE_PARTS, PROGRAM_PARTS, cache_contents, cache_dir, clear_cache, max_part_bytes  # noqa: E402
 from mbcal.errors import MbcalError, suggest  # noqa: E402
-from mbcal.outputs import INTERRUPTED, atomic_write, check_output, check_output_folder  # noqa: E402
+from mbcal.outputs import (  # noqa: E402
+    INTERRUPTED,
+    atomic_write,
+    check_output,
+    check_output_folder,
+    protect,
+    protected_inputs,
+)
 from mbcal.text import table  # noqa: E402
 from mbcal.units import LENGTH, UNITS, describe, to_display  # noqa: E402
 
@@ -179,6 +186,8 @@ def parse_assignments(items: Sequence[str], model=None, option: str = "--set") -
         if model is not None and dim is not None:
             for param in model.match_params(name.split("@", 1)[0]):
                 _check_dimension(dim, unit, param, option, model.param(param).dim)
+        if name in out:  # which one was meant? (the last won in silence)
+            raise MbcalError(f"{option} {name} is given twice")
         out[name] = value
     return out
 
@@ -385,6 +394,14 @@ _OUTPUT_OPTIONS = {"json": "--json", "write_model": "--write-model", "plot": "--
 def _check_outputs(args, inputs) -> None:
     """Validate every output path before any work is done (nothing is lost on a bad path): none is
     an input, none is named by two options (one would replace the other), none is empty."""
+    pictures = [
+        item.split("=", 1)[1]
+        for option in ("background", "image")
+        if isinstance(getattr(args, option, None), list)
+        for item in getattr(args, option)
+        if "=" in item
+    ]
+    protect([*inputs, *pictures])  # whatever the command writes later (an overlay) never replaces them
     claimed: dict[Path, str] = {}
     for attr, option in _OUTPUT_OPTIONS.items():
         value = getattr(args, attr, None)
@@ -395,8 +412,13 @@ def _check_outputs(args, inputs) -> None:
             if where in claimed:
                 raise MbcalError(f"{claimed[where]} and {option} both name {value}: one would replace the other")
             claimed[where] = option
-    if getattr(args, "overlay", None):
-        check_output_folder(args.overlay, "--overlay")
+    overlay = getattr(args, "overlay", None)
+    if overlay == "":
+        raise MbcalError("--overlay needs a folder name, got an empty one")
+    if overlay:
+        folder = check_output_folder(overlay, "--overlay").resolve()
+        if folder in claimed:
+            raise MbcalError(f"{claimed[folder]} and --overlay both name {overlay}: a file and a folder")
 
 
 # ---- solve ------------------------------------------------------------------------------------------
@@ -651,6 +673,10 @@ def cmd_calibrate_camera(args: argparse.Namespace) -> int:
         if "=" not in item:
             raise MbcalError(f"--image expects CONFIG=PATH or CONFIG@CAMERA=PATH, got '{item}'")
         key, path = item.split("=", 1)
+        if not path.strip():
+            raise MbcalError(f"--image {item}: no file name after '='")
+        if key in images and key not in data.images:
+            raise MbcalError(f"--image {key} is given twice")
         config, _, camera = key.partition("@")
         if config not in seen:
             raise MbcalError(
@@ -660,6 +686,8 @@ def cmd_calibrate_camera(args: argparse.Namespace) -> int:
         for cam in [model.resolve("camera", camera)] if camera else sorted(seen[config]):
             _background(model, cam, path, f"--image {item}")  # exists, and has the camera's size
         images[key] = path
+    if args.image and not args.overlay:
+        raise MbcalError("--image is for the overlays: give --overlay DIR too")
     progress = Progress(not args.quiet)
     progress.step("initialising (Zhang's method) and refining")
     cc = calibrate_cameras(
@@ -918,7 +946,7 @@ def _register_commands(sub) -> None:
         "--voxel", type=_nonnegative, default=0.01, metavar="M", help="scan down-sampling voxel (default 0.01 m)"
     )
     p.add_argument(
-        "--scan-points", type=int, default=2000, metavar="N", help="at most N points per scan (default 2000)"
+        "--scan-points", type=_count, default=2000, metavar="N", help="at most N points per scan (default 2000)"
     )
     p.add_argument("--scan-sigma", type=float, metavar="M", help="σ of a scan point (default: the scan's)")
     p.add_argument("--sensor", metavar="NAME", help="the depth camera of depth-image scans (default: the only one)")
@@ -1500,7 +1528,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_BAD_INPUT
     restore = _watch_interrupts()
     try:
-        code = int(args.func(args))
+        with protected_inputs():  # no write of the command replaces one of its inputs (_check_outputs)
+            code = int(args.func(args))
         if INTERRUPTED.is_set():  # a Ctrl-C that Python swallowed (in a finalizer): still interrupted
             raise KeyboardInterrupt
         return code

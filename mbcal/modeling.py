@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from mbcal._jax import jnp, on_host, to_device
+from mbcal._jax import jax, jnp, on_host, to_device
 from mbcal.errors import ParameterError
 from mbcal.language import ir, soa
 from mbcal.language import soa_math as sm
@@ -35,6 +35,11 @@ def parameter_vector(model: Model, values: Mapping[str, float] | None = None) ->
         except (TypeError, ValueError):
             number = None
         if number is None or not np.isfinite(number):  # a NaN would pass through the whole scene
+            if isinstance(value, jax.core.Tracer):
+                raise ParameterError(
+                    f"{name}: a traced value (jit, grad, vmap) cannot go through a mapping of values; "
+                    "pass X, the whole parameter vector (parameter_vector(model) with your values set in it)"
+                )
             raise ParameterError(f"{name}: a value must be a finite number (SI units), got {value!r}")
         X[index] = number
     return X

@@ -12,6 +12,7 @@ command reads.
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import math
 import os
 import stat
@@ -112,6 +113,10 @@ def check_output_folder(path: str | os.PathLike[str], what: str) -> Path:
         raise OutputError(f"{what}: cannot make the folder {folder}: {parent} is a file")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise OutputError(f"{what}: cannot write into {folder}: {parent} is not writable")
+    try:  # the system's answer, not only the permission bits (/proc says writable to root)
+        os.rmdir(tempfile.mkdtemp(prefix=".mbcal-probe.", dir=parent))
+    except OSError as err:
+        raise OutputError(f"{what}: cannot write into {folder}: {err.strerror or err}") from None
     return folder
 
 
@@ -119,6 +124,26 @@ def check_interrupted() -> None:
     """Raise ``KeyboardInterrupt`` when the command line was interrupted (see :data:`INTERRUPTED`)."""
     if INTERRUPTED.is_set():
         raise KeyboardInterrupt
+
+
+_PROTECTED: contextvars.ContextVar[frozenset[Path]] = contextvars.ContextVar("mbcal_protected", default=frozenset())
+
+
+@contextlib.contextmanager
+def protected_inputs() -> Iterator[None]:
+    """Within the block, :func:`protect` adds files that no atomic write may replace: a command's
+    inputs, whatever writes — an overlay whose name a photo happens to have too (one folder both
+    read and written) is refused, not written over the photo."""
+    token = _PROTECTED.set(frozenset())
+    try:
+        yield
+    finally:
+        _PROTECTED.reset(token)
+
+
+def protect(paths: Iterable[str | os.PathLike[str]]) -> None:
+    """Add input files to those the current :func:`protected_inputs` block keeps (no-op outside one)."""
+    _PROTECTED.set(_PROTECTED.get() | {Path(p).resolve() for p in paths})
 
 
 @contextlib.contextmanager
@@ -129,6 +154,8 @@ def atomic_writer(path: str | os.PathLike[str], mode: str = "wb") -> Iterator:
     gets the target's permissions (see the module doc) and is renamed over the target.
     """
     target = Path(path)
+    if target.resolve() in _PROTECTED.get():
+        raise OutputError(f"refusing to overwrite the input file {target}", hint="choose another output name or folder")
     # Beside the name given, not beside what a link there points to: the rename below replaces
     # that name (a link included), and a rename across file systems fails.
     try:

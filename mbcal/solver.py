@@ -484,6 +484,8 @@ def hard_limits(
     when there are none or every side is infinite (then the unbounded program runs)."""
     if bounds is None:
         return None, x0
+    if len(bounds) != 2:
+        raise SolverError(f"bounds must be (lower, upper), got {len(bounds)} item(s)")
     for side, name in zip(bounds, ("lower", "upper")):
         given = np.shape(side)
         if given not in ((), x0.shape[1:]):  # one number for all, or one per unknown: never spread

@@ -16,7 +16,7 @@ import math
 from dataclasses import dataclass
 from fractions import Fraction
 
-__all__ = ["Dim", "LENGTH", "ANGLE", "DIMENSIONLESS", "UNITS", "describe", "unify", "fits", "to_display"]
+__all__ = ["Dim", "LENGTH", "ANGLE", "DIMENSIONLESS", "UNITS", "describe", "unify", "fits", "to_display", "real"]
 
 
 @dataclass(frozen=True)
@@ -101,3 +101,18 @@ def to_display(unit: str, value: float) -> float:
 def fits(dim: Dim | None, expected: Dim) -> bool:
     """Whether a value of dimension ``dim`` may stand where ``expected`` is required."""
     return dim is None or dim == expected
+
+
+def real(value: object) -> float | None:
+    """``value`` as a float when it is one real number — a Python, NumPy or JAX scalar, or a 0-d
+    array — and None otherwise (text, a flag, None, an array of several); NaN and ±inf are
+    returned as they are, for the caller to judge."""
+    if isinstance(value, (str, bytes, bool)) or value is None:
+        return None
+    try:
+        shape = getattr(value, "shape", ())
+        if len(shape) != 0:
+            return None
+        return float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return None

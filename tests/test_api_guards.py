@@ -196,3 +196,36 @@ def test_solver_settings_kinematics_arguments_and_model_text_are_checked():
     for text in (None, b"param a = 1 m\n"):
         with pytest.raises(MdlError, match="model text must be a str"):
             mbcal.load_model_text(text)  # type: ignore[arg-type]
+
+
+def test_numpy_and_jax_scalars_are_numbers_where_numbers_are_checked(room):
+    """The checks added above refused np.float32(1) and jnp.array(1.0) for simulate's noise and
+    FitOptions' lengths, which worked before them."""
+    import jax.numpy as jnp
+
+    from mbcal.range.fit import FitOptions
+    from mbcal.range.scans import Scan
+
+    plan = mbcal.read_measurements(MEASUREMENTS / "room_plan.csv", room)
+    reference = mbcal.simulate(room, plan, {}, noise=1.0, seed=2).measurements[0].value
+    for noise in (np.float32(1.0), np.int64(1), np.array(1.0), jnp.array(1.0)):
+        np.testing.assert_array_equal(
+            mbcal.simulate(room, plan, {}, noise=noise, seed=2).measurements[0].value, reference
+        )
+    FitOptions(voxel=np.float32(0.01), crop=np.float64(0.1), graduated=np.int64(10), misfit_fraction=np.float32(0.2))
+    Scan(np.zeros((3, 3)), sigma=np.float32(1e-3))
+
+
+def test_a_kind_whose_value_is_fixed_refuses_a_value_and_bounds_are_a_pair(tmp_path):
+    """A point_to_surface record's 'value' or 'distance' was ignored in silence (S the same for
+    0.05, 99 or nothing); bounds=([0, 0],) was an IndexError."""
+    from mbcal.measurements.sets import measurements_from_records
+
+    model = mbcal.load_model(MODELS / "room_depth.mdl")
+    base = {"kind": "point_to_surface", "object": "room", "x": 0.1, "y": 0.2, "z": 0.3}
+    assert len(measurements_from_records([base], model)) == 1
+    for extra in ({"value": 0.05}, {"distance": 99.0}):
+        with pytest.raises(MeasurementFileError, match="'point_to_surface' takes no value"):
+            measurements_from_records([{**base, **extra}], model)
+    with pytest.raises(SolverError, match=r"bounds must be \(lower, upper\)"):
+        least_squares(lambda x: x, [[1.0, 2.0]], bounds=([0.0, 0.0],))

@@ -302,6 +302,14 @@ def test_calibrate_camera_checks_its_images_before_the_solve(tmp_path, capsys, m
             ["calibrate-camera", str(model_path), str(corners), "--image", image, "--overlay", str(tmp_path / "ov")]
         )
         assert code == 2 and message in capsys.readouterr().err
+    right = f"{view}={tmp_path / 'right.png'}"
+    for extra, message in (
+        (["--image", right], "--image is for the overlays: give --overlay DIR too"),
+        (["--image", f"{view}=", "--overlay", str(tmp_path / "ov")], "no file name after '='"),
+        (["--image", right, "--image", right, "--overlay", str(tmp_path / "ov")], f"--image {view} is given twice"),
+    ):
+        assert cli.main(["calibrate-camera", str(model_path), str(corners), *extra]) == 2
+        assert message in capsys.readouterr().err
     assert solved == []  # refused before the solve
 
 
@@ -309,3 +317,29 @@ def test_an_input_file_given_twice_is_refused(clicks, capsys):
     """It was read twice: 'duplicate id (first at lever.csv:2:1)', pointing at the very same place."""
     assert cli.main(["solve", LEVER, str(clicks), str(clicks), "--estimate", "lever.angle", "-q"]) == 2
     assert f"{clicks} is given twice" in capsys.readouterr().err
+
+
+def test_an_overlay_never_replaces_a_photo_it_was_drawn_over_and_its_folder_is_checked(tmp_path, clicks, capsys):
+    """--background pointing into the --overlay folder at a name the overlay writes was replaced by
+    the new picture (exit 0); --overlay '' was ignored; an --overlay folder the system refuses was
+    found after the solve; a folder and a file at one path were found after the overlays."""
+    base = ["solve", LEVER, str(clicks), "--estimate", "lever.angle", "-q"]
+    folder = tmp_path / "ov"
+    assert cli.main([*base, "--overlay", str(folder)]) == 0
+    photo = folder / "eye_after.png"
+    before = photo.read_bytes()
+    assert cli.main([*base, "--overlay", str(folder), "--background", f"eye={photo}"]) == 2
+    assert f"refusing to overwrite the input file {photo}" in capsys.readouterr().err
+    assert photo.read_bytes() == before
+    assert cli.main([*base, "--overlay", ""]) == 2
+    assert "--overlay needs a folder name" in capsys.readouterr().err
+    same = str(tmp_path / "r.mdl")
+    assert cli.main([*base, "--overlay", same, "--write-model", same]) == 2
+    assert "--write-model and --overlay both name" in capsys.readouterr().err
+    assert not (tmp_path / "r.mdl").exists()
+
+
+def test_a_value_given_twice_and_images_without_overlays_are_refused(clicks, capsys):
+    base = ["solve", LEVER, str(clicks), "--estimate", "lever.angle", "-q"]
+    assert cli.main([*base, "--set", "lever.length=25cm", "--set", "lever.length=30cm"]) == 2  # the last won
+    assert "--set lever.length is given twice" in capsys.readouterr().err

@@ -244,3 +244,19 @@ def test_an_update_with_an_undetermined_unknown_is_strict_json_and_reads_back_in
     back = Update.from_json(json.loads(text))
     assert back.std == {"a": 0.1, "b": float("inf")} and np.isnan(back.chi2) and np.isnan(back.reduced_chi2)
     assert back.values == u.values and not back.accepted
+
+
+def test_a_link_to_nothing_is_a_rejected_update_and_a_folder_is_no_scan(tmp_path):
+    """A dangling symbolic link stopped the watch ('No such file or directory', exit 2); a folder
+    named like a scan was reported as a missing file."""
+    from mbcal.range.manager import ModelManager
+
+    scans = tmp_path / "in"
+    scans.mkdir()
+    (scans / "a.ply").symlink_to(tmp_path / "nowhere.ply")
+    (scans / "d.ply").mkdir()
+    manager = ModelManager(MODELS / "room_depth.mdl", tmp_path / "out", ["room.*"])
+    seen = []
+    assert manager.watch(scans, once=True, report=seen.append) == 1
+    assert not seen[0].accepted and "a link to a file that does not exist" in seen[0].error
+    assert manager.watch(scans, once=True) == 0  # not taken again until it changes

@@ -73,3 +73,22 @@ def test_a_temporary_file_that_cannot_be_made_is_said_of_the_file_asked_for(tmp_
     with pytest.raises(OutputError, match=f"^cannot write {tmp_path / 'r.json'}: Permission denied"):
         atomic_write(tmp_path / "r.json", "{}")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_an_output_folder_the_system_refuses_is_found_before_the_work(tmp_path, monkeypatch):
+    """The permission bits said yes (/proc to root) and the folder failed after the solve."""
+    import errno
+    import tempfile
+
+    from mbcal.errors import OutputError
+    from mbcal.outputs import check_output_folder
+
+    def refuse(*args, **kwargs):
+        raise OSError(errno.ENOENT, "No such file or directory")
+
+    monkeypatch.setattr(tempfile, "mkdtemp", refuse)
+    with pytest.raises(OutputError, match="--overlay: cannot write into .*: No such file or directory"):
+        check_output_folder(tmp_path / "ov", "--overlay")
+    monkeypatch.undo()
+    assert check_output_folder(tmp_path / "ov", "--overlay") == tmp_path / "ov"
+    assert list(tmp_path.iterdir()) == []  # the probe leaves nothing behind

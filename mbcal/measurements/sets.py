@@ -587,6 +587,13 @@ class SetBuilder:
 
     def _values(self, record, mm: MeasurementModel, where, factor: float) -> np.ndarray | None:
         if mm.implicit_value is not None:
+            given = [k for k in ("value", "distance", *mm.values) if not _blank(record.get(k))]
+            if given:  # it would be ignored: the value of this kind is fixed
+                raise MeasurementFileError(
+                    f"'{mm.kind}' takes no value (it is {mm.implicit_value:g} by definition); '{given[0]}' is given",
+                    where,
+                    field=given[0],
+                )
             return np.full(mm.size, mm.implicit_value)
         raw: list[Any] = []
         if not _blank(record.get("value")) and "value" not in mm.values:

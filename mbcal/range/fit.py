@@ -63,6 +63,7 @@ from mbcal.outputs import finite_or_null
 from mbcal.params import ParameterSet
 from mbcal.range.scans import Scan
 from mbcal.solver import Loss, SolverConfig, least_squares, random_starts
+from mbcal.units import real
 
 Array = Any
 
@@ -129,15 +130,19 @@ class FitOptions:
 
         for name in ("voxel", "probe_sigma", "probe_gain", "assign_margin"):
             value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+            number = real(value)
+            if number is None or not (math.isfinite(number) and number >= 0):
                 raise bad(name, "a finite number ≥ 0")
         for name in ("crop", "outlier_sigma", "coarse_distance"):
             value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+            number = real(value)
+            if number is None or not (math.isfinite(number) and number > 0):
                 raise bad(name, "a finite number > 0")
-        if not (isinstance(self.graduated, (int, float)) and math.isfinite(self.graduated) and self.graduated >= 1):
+        graduated = real(self.graduated)
+        if graduated is None or not (math.isfinite(graduated) and graduated >= 1):
             raise bad("graduated", "a finite number ≥ 1 (1: off)")
-        if not 0 < self.misfit_fraction <= 1:
+        share = real(self.misfit_fraction)
+        if share is None or not 0 < share <= 1:
             raise bad("misfit_fraction", "a share in (0, 1]")
         for name, low in (
             ("restarts", 1),

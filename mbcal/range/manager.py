@@ -25,6 +25,7 @@ import fnmatch
 import json
 import math
 import os
+import stat
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -41,6 +42,7 @@ from mbcal.outputs import atomic_write, check_output_folder, finite_or_null
 from mbcal.range.fit import FitOptions, Prior, ScanFit, fit_scans
 from mbcal.range.readers import CLOUD_SUFFIXES, DEPTH_SUFFIXES, write_ply
 from mbcal.range.scans import Scan, load_scan
+from mbcal.units import real
 
 __all__ = ["ModelManager", "Update", "fit_files", "SCAN_SUFFIXES"]
 
@@ -191,9 +193,9 @@ class ModelManager:
             if not self.model.match_params(pattern):
                 self.model.param_index(pattern)  # raises, with the closest names
         self.options = options or FitOptions()
-        if not (isinstance(drift_k, (int, float)) and np.isfinite(drift_k) and drift_k > 0):
+        if not ((k := real(drift_k)) is not None and np.isfinite(k) and k > 0):
             raise MbcalError(f"drift_k must be a number of σ > 0, got {drift_k!r}")
-        if sigma is not None and not (isinstance(sigma, (int, float)) and np.isfinite(sigma) and sigma > 0):
+        if sigma is not None and not ((s := real(sigma)) is not None and np.isfinite(s) and s > 0):
             raise MbcalError(f"sigma must be a positive number of metres, got {sigma!r}")
         if sensor is not None:
             self.model.resolve("range", sensor)  # raises for a name no range sensor has
@@ -395,23 +397,35 @@ class ModelManager:
             for p in sorted(src.iterdir()):
                 if p.suffix.lower() not in SCAN_SUFFIXES or p.name.startswith(".") or str(p.resolve()) in done:
                     continue
-                info = p.stat()
-                stamp = [info.st_size, info.st_mtime_ns]
-                if unreadable.get(str(p.resolve())) == stamp:
-                    continue  # could not be read, and has not changed since
-                size = info.st_size
-                seen = sizes.get(p)
-                now = time.monotonic()
-                if not once and (seen is None or seen[0] != size or now - seen[1] < settle):
-                    if seen is None or seen[0] != size:
-                        sizes[p] = (size, now)
-                    continue
                 try:
-                    u = self.update_files([p])
-                    done.add(str(p.resolve()))
-                except MbcalError as err:  # one bad file does not stop the watch (it is in the journal)
-                    u = self._unreadable(p, stamp, err)
+                    info = p.stat()
+                except OSError:  # a link to nothing (a rejected update), or a file removed meanwhile
+                    if not p.is_symlink():
+                        continue
+                    stamp = [-1, p.lstat().st_mtime_ns]
+                    if unreadable.get(str(p.resolve())) == stamp:
+                        continue
+                    u = self._unreadable(p, stamp, MbcalError(f"{p}: a link to a file that does not exist"))
                     unreadable[str(p.resolve())] = stamp
+                else:
+                    if not stat.S_ISREG(info.st_mode):
+                        continue  # a folder that happens to end in .ply: no scan
+                    stamp = [info.st_size, info.st_mtime_ns]
+                    if unreadable.get(str(p.resolve())) == stamp:
+                        continue  # could not be read, and has not changed since
+                    size = info.st_size
+                    seen = sizes.get(p)
+                    now = time.monotonic()
+                    if not once and (seen is None or seen[0] != size or now - seen[1] < settle):
+                        if seen is None or seen[0] != size:
+                            sizes[p] = (size, now)
+                        continue
+                    try:
+                        u = self.update_files([p])
+                        done.add(str(p.resolve()))
+                    except MbcalError as err:  # one bad file does not stop the watch (it is in the journal)
+                        u = self._unreadable(p, stamp, err)
+                        unreadable[str(p.resolve())] = stamp
                 count += 1
                 if report is not None:
                     report(u)
