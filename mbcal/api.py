@@ -10,7 +10,6 @@
 from __future__ import annotations
 
 import functools
-import math
 import threading
 import time
 import weakref
@@ -57,7 +56,7 @@ from mbcal.structured import (
     square_root_information,
     structure_of,
 )
-from mbcal.units import real
+from mbcal.units import at_least, whole
 
 __all__ = [
     "calibrate",
@@ -134,13 +133,9 @@ class CalibrateOptions:
     def __post_init__(self) -> None:
         # Checked here, where the caller's mistake is still theirs: deep in the solver a float count
         # or a dict for a config was a NumPy TypeError or an AttributeError naming mbcal's code.
-        def whole(value: Any) -> bool:
-            return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
-
-        if not whole(self.restarts):
+        if not whole(self.restarts, -(2**63)):  # the count itself: check_size
             raise SolverError(f"restarts must be a whole number ≥ 1, got {self.restarts!r}")
-        if self.seed is not None and not (whole(self.seed) and self.seed >= 0):
-            raise SolverError(f"seed must be a whole number ≥ 0 or None, got {self.seed!r}")
+        _check_seed(self.seed)
         for name, kind in (("config", SolverConfig), ("fit", FitConfig), ("observability", ObservabilityConfig)):
             value = getattr(self, name)
             if value is not None and not isinstance(value, kind):
@@ -149,9 +144,8 @@ class CalibrateOptions:
             value = getattr(self, name)
             if value is not None and not isinstance(value, Mapping):
                 raise SolverError(f"{name} must be a mapping of parameter names to values, got {value!r}")
-        t = self.outlier_threshold
-        if not (isinstance(t, (int, float, np.floating)) and math.isfinite(t) and t >= 0):
-            raise SolverError(f"outlier_threshold must be a finite number of σ ≥ 0, got {t!r}")
+        if not at_least(self.outlier_threshold, 0.0):
+            raise SolverError(f"outlier_threshold must be a finite number of σ ≥ 0, got {self.outlier_threshold!r}")
         _check_analysis(self.analysis)
 
     def updated(self, changes: Mapping[str, Any]) -> CalibrateOptions:
@@ -166,6 +160,12 @@ class CalibrateOptions:
                     + f" (options: {', '.join(names)})"
                 )
         return replace(self, **changes)
+
+
+def _check_seed(seed: Any) -> None:
+    """A seed of the random starts or of the noise: NumPy's generators take a whole number ≥ 0."""
+    if seed is not None and not whole(seed, 0):
+        raise SolverError(f"seed must be a whole number ≥ 0 or None, got {seed!r}")
 
 
 MAX_RESTARTS = 10_000
@@ -745,12 +745,10 @@ def simulate(
         image); otherwise they raise an error.
     """
     truth = dict(truth or {})
-    amount = real(noise)
-    if amount is None or not (math.isfinite(amount) and amount >= 0):
+    if not at_least(noise, 0.0):
         raise SolverError(f"noise must be a finite number ≥ 0 (a multiplier of each σ), got {noise!r}")
-    noise = amount
-    if seed is not None and not (isinstance(seed, (int, np.integer)) and seed >= 0):
-        raise SolverError(f"seed must be a whole number ≥ 0 or None, got {seed!r}")
+    noise = float(noise)
+    _check_seed(seed)
     names = list(dict.fromkeys(str(k).split("@")[0] for k in truth))
     problem = Problem(model, plan, names, priors=False)
     x = problem.params.from_dict({k: v for k, v in truth.items() if k in problem.params.names})

@@ -13,10 +13,24 @@ the mistake users most often make is an angle where a length belongs, or the rev
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 from fractions import Fraction
 
-__all__ = ["Dim", "LENGTH", "ANGLE", "DIMENSIONLESS", "UNITS", "describe", "unify", "fits", "to_display", "real"]
+__all__ = [
+    "Dim",
+    "LENGTH",
+    "ANGLE",
+    "DIMENSIONLESS",
+    "UNITS",
+    "describe",
+    "unify",
+    "fits",
+    "to_display",
+    "real",
+    "at_least",
+    "whole",
+]
 
 
 @dataclass(frozen=True)
@@ -116,3 +130,17 @@ def real(value: object) -> float | None:
         return float(value)  # type: ignore[arg-type]
     except (TypeError, ValueError):
         return None
+
+
+def at_least(value: object, low: float, *, strict: bool = False) -> bool:
+    """Whether ``value`` is one finite real number (:func:`real`) ≥ ``low`` (> ``low`` with ``strict``):
+    the check of a setting that must be a count of σ, a length, a tolerance."""
+    number = real(value)
+    return number is not None and math.isfinite(number) and (number > low if strict else number >= low)
+
+
+def whole(value: object, low: int | None = None) -> bool:
+    """Whether ``value`` is a whole number (a Python or NumPy integer, not a flag), ≥ ``low`` when given."""
+    if not isinstance(value, numbers.Integral) or isinstance(value, bool):
+        return False
+    return low is None or int(value) >= low

@@ -44,7 +44,6 @@ k·c on r is k² times the loss with scale c on r/k: rows scaled by 1/k), and so
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -63,7 +62,7 @@ from mbcal.outputs import finite_or_null
 from mbcal.params import ParameterSet
 from mbcal.range.scans import Scan
 from mbcal.solver import Loss, SolverConfig, least_squares, random_starts
-from mbcal.units import real
+from mbcal.units import at_least, whole
 
 Array = Any
 
@@ -129,20 +128,14 @@ class FitOptions:
             return SolverError(f"FitOptions.{name} must be {rule}, got {getattr(self, name)!r}")
 
         for name in ("voxel", "probe_sigma", "probe_gain", "assign_margin"):
-            value = getattr(self, name)
-            number = real(value)
-            if number is None or not (math.isfinite(number) and number >= 0):
+            if not at_least(getattr(self, name), 0.0):
                 raise bad(name, "a finite number ≥ 0")
         for name in ("crop", "outlier_sigma", "coarse_distance"):
-            value = getattr(self, name)
-            number = real(value)
-            if number is None or not (math.isfinite(number) and number > 0):
+            if not at_least(getattr(self, name), 0.0, strict=True):
                 raise bad(name, "a finite number > 0")
-        graduated = real(self.graduated)
-        if graduated is None or not (math.isfinite(graduated) and graduated >= 1):
+        if not at_least(self.graduated, 1.0):
             raise bad("graduated", "a finite number ≥ 1 (1: off)")
-        share = real(self.misfit_fraction)
-        if share is None or not 0 < share <= 1:
+        if not (at_least(self.misfit_fraction, 0.0, strict=True) and self.misfit_fraction <= 1):
             raise bad("misfit_fraction", "a share in (0, 1]")
         for name, low in (
             ("restarts", 1),
@@ -152,8 +145,7 @@ class FitOptions:
             ("probe_rounds", 0),
             ("seed", 0),
         ):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= low):
+            if not whole(getattr(self, name), low):
                 raise bad(name, f"a whole number ≥ {low}")
         if self.coarse not in ("auto", "always", "never"):
             raise bad("coarse", "'auto', 'always' or 'never'")

@@ -42,7 +42,7 @@ from mbcal.outputs import atomic_write, check_output_folder, finite_or_null
 from mbcal.range.fit import FitOptions, Prior, ScanFit, fit_scans
 from mbcal.range.readers import CLOUD_SUFFIXES, DEPTH_SUFFIXES, write_ply
 from mbcal.range.scans import Scan, load_scan
-from mbcal.units import real
+from mbcal.units import at_least
 
 __all__ = ["ModelManager", "Update", "fit_files", "SCAN_SUFFIXES"]
 
@@ -193,9 +193,9 @@ class ModelManager:
             if not self.model.match_params(pattern):
                 self.model.param_index(pattern)  # raises, with the closest names
         self.options = options or FitOptions()
-        if not ((k := real(drift_k)) is not None and np.isfinite(k) and k > 0):
+        if not at_least(drift_k, 0.0, strict=True):
             raise MbcalError(f"drift_k must be a number of σ > 0, got {drift_k!r}")
-        if sigma is not None and not ((s := real(sigma)) is not None and np.isfinite(s) and s > 0):
+        if sigma is not None and not at_least(sigma, 0.0, strict=True):
             raise MbcalError(f"sigma must be a positive number of metres, got {sigma!r}")
         if sensor is not None:
             self.model.resolve("range", sensor)  # raises for a name no range sensor has

@@ -21,7 +21,6 @@ and very grazing surfaces are cut.
 
 from __future__ import annotations
 
-import math
 import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -32,7 +31,7 @@ from mbcal.errors import MbcalError, MeasurementFileError
 from mbcal.language.model import Model, RangeInfo
 from mbcal.params import DEFAULT_CONFIGURATION
 from mbcal.range.readers import CLOUD_SUFFIXES, read_cloud, read_depth, read_npy
-from mbcal.units import real
+from mbcal.units import at_least
 
 __all__ = ["Scan", "load_scan", "depth_to_points", "edge_mask", "voxel_downsample", "depth_camera", "EDGE_DEFAULT"]
 
@@ -60,11 +59,11 @@ class Scan:
     focal: float = 0.0  # the depth camera's focal length (pixels), for down-sampling on its grid
 
     def __post_init__(self) -> None:
-        if not ((s := real(self.sigma)) is not None and math.isfinite(s) and s > 0):
+        if not at_least(self.sigma, 0.0, strict=True):
             raise MbcalError(
                 f"scan {self.source or self.frame}: sigma must be a positive number of metres, got {self.sigma!r}"
             )
-        if not ((r := real(self.sigma_rel)) is not None and math.isfinite(r) and r >= 0):
+        if not at_least(self.sigma_rel, 0.0):
             raise MbcalError(f"scan {self.source or self.frame}: sigma_rel must be ≥ 0, got {self.sigma_rel!r}")
         object.__setattr__(self, "points", np.asarray(self.points, dtype=float))  # a list, float32: (N, 3) float64
         shape = self.points.shape

@@ -496,25 +496,20 @@ def _expression_std(result: Any, node: ir.Node, X: np.ndarray) -> float | None:
     and C their covariance; None when it reads no unknown (fixed), ∞ when one of them is not
     determined by the views."""
     slots = result.problem.params.slots(0)
-    read = sorted(j for j in (int(slots[p]) for p in ir.depends_on(node)) if j >= 0)
-    if not read:
+    if all(slots[p] < 0 for p in ir.depends_on(node)):
         return None
     from mbcal._jax import jax, jnp
 
     gradient = np.asarray(jax.grad(lambda P: ir.evaluate(node, P, {}, jnp))(jnp.asarray(X, dtype=float)))
-    g = np.zeros(len(read))
-    for p, j in enumerate(slots):
-        if j >= 0 and int(j) in read:
-            g[read.index(int(j))] += gradient[p]
-    std = result.observability.std[read]
-    moved = g != 0
-    if not moved.any():
+    g = np.zeros(result.problem.params.size)  # in the unknowns: chain rule through X = X(x)
+    np.add.at(g, slots[slots >= 0], gradient[slots >= 0])
+    idx = np.nonzero(g)[0]
+    if idx.size == 0:
         return 0.0
-    if not np.all(np.isfinite(std[moved])):
+    if not np.all(np.isfinite(result.observability.std[idx])):
         return math.inf
-    idx = np.asarray(read)[moved]
     C = np.asarray(result.covariance[np.ix_(idx, idx)], dtype=float)
-    return float(math.sqrt(max(float(g[moved] @ C @ g[moved]), 0.0)))
+    return float(math.sqrt(max(float(g[idx] @ C @ g[idx]), 0.0)))
 
 
 def default_unknowns(model: Model, data: MeasurementSet) -> list[str]:
