@@ -42,6 +42,7 @@ from mbcal.outputs import (  # noqa: E402
     check_output_folder,
     protect,
     protected_inputs,
+    refuse_inputs,
 )
 from mbcal.text import table  # noqa: E402
 from mbcal.units import LENGTH, UNITS, describe, to_display  # noqa: E402
@@ -207,8 +208,12 @@ def _check_values(model, values: dict[str, float], option: str = "--set") -> dic
             low = -math.inf if info.limit_lower is None else info.limit_lower
             high = math.inf if info.limit_upper is None else info.limit_upper
             if not low <= value <= high:
+                unit = info.unit
+                low_high = ", ".join(f"{to_display(unit, v):g}" for v in (low, high))
                 raise MbcalError(
-                    f"{option} {key}: {value:g} (SI) is outside the hard limits of {name} [{low:g}, {high:g}]"
+                    f"{option} {key}: {to_display(unit, value):g}{' ' + unit if unit else ''} is outside the hard "
+                    f"limits of {name} [{low_high}]{' ' + unit if unit else ''}",
+                    info.span,
                 )
             if "@" not in key:  # one configuration's value: checked against the limits only
                 X[model.param_index(name)] = value
@@ -407,6 +412,9 @@ def _check_outputs(args, inputs) -> None:
         value = getattr(args, attr, None)
         if value == "":
             raise MbcalError(f"{option} needs a file name, got an empty one")
+        if value == "-" and attr != "json":
+            # Only a JSON report goes to standard output; anything else would be a file named '-'.
+            raise MbcalError(f"{option} needs a file name: '-' (standard output) is taken by --json only")
         if value and value != "-":
             where = check_output(value, inputs).resolve()
             if where in claimed:
@@ -476,6 +484,10 @@ def cmd_solve(args: argparse.Namespace) -> int:
         backgrounds[cam] = _background(model, cam, path, f"--background {item}")
     if backgrounds and not args.overlay:
         raise MbcalError("--background is for the overlays: give --overlay DIR too")
+    if args.overlay:  # an overlay's name taken by an input (a photo in that folder): refused now, not after the solve
+        from mbcal.render.overlays import planned_overlays  # lazy: rendering loads only when a picture is made
+
+        refuse_inputs(planned_overlays(model, data.measurements, args.overlay))
     progress.step(f"compiling and solving {args.restarts} restarts")
     result = calibrate(
         model,
@@ -655,7 +667,11 @@ def cmd_calibrate_camera(args: argparse.Namespace) -> int:
     from mbcal.measurements.io import read_measurements  # lazy: keeps JAX out of 'mbcal check'
     from mbcal.measurements.sets import merge_measurements  # lazy: keeps JAX out of 'mbcal check'
     from mbcal.solver import SolverConfig  # lazy: keeps JAX out of 'mbcal check'
-    from mbcal.workflows.cameras import calibrate_cameras, reprojection_images  # lazy: keeps JAX out of 'mbcal check'
+    from mbcal.workflows.cameras import (  # lazy: keeps JAX out of 'mbcal check'
+        calibrate_cameras,
+        planned_reprojections,
+        reprojection_images,
+    )
 
     inputs = [args.model, *args.measurements]
     _distinct(args.measurements)
@@ -688,6 +704,9 @@ def cmd_calibrate_camera(args: argparse.Namespace) -> int:
         images[key] = path
     if args.image and not args.overlay:
         raise MbcalError("--image is for the overlays: give --overlay DIR too")
+    protect(images.values())  # the measurement file's images too, not only those of --image
+    if args.overlay:  # an overlay named like one of its images (same folder): refused now, not after the solve
+        refuse_inputs(planned_reprojections(model, data.measurements, images, args.overlay))
     progress = Progress(not args.quiet)
     progress.step("initialising (Zhang's method) and refining")
     cc = calibrate_cameras(

@@ -146,6 +146,17 @@ def protect(paths: Iterable[str | os.PathLike[str]]) -> None:
     _PROTECTED.set(_PROTECTED.get() | {Path(p).resolve() for p in paths})
 
 
+def refuse_inputs(paths: Iterable[str | os.PathLike[str]]) -> None:
+    """Raise if one of ``paths`` is a file the current :func:`protected_inputs` block keeps: called
+    by every atomic write, and before the work by a command that knows its file names early."""
+    kept = _PROTECTED.get()
+    for path in paths:
+        if Path(path).resolve() in kept:
+            raise OutputError(
+                f"refusing to overwrite the input file {path}", hint="choose another output name or folder"
+            )
+
+
 @contextlib.contextmanager
 def atomic_writer(path: str | os.PathLike[str], mode: str = "wb") -> Iterator:
     """Open a temporary file that replaces ``path`` only when the block finishes without error.
@@ -154,8 +165,7 @@ def atomic_writer(path: str | os.PathLike[str], mode: str = "wb") -> Iterator:
     gets the target's permissions (see the module doc) and is renamed over the target.
     """
     target = Path(path)
-    if target.resolve() in _PROTECTED.get():
-        raise OutputError(f"refusing to overwrite the input file {target}", hint="choose another output name or folder")
+    refuse_inputs([target])
     # Beside the name given, not beside what a link there points to: the rename below replaces
     # that name (a link included), and a rename across file systems fails.
     try:

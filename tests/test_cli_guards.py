@@ -210,6 +210,16 @@ def test_two_outputs_at_one_path_or_an_empty_name_are_refused_before_the_work(tm
     assert list(tmp_path.iterdir()) == []
 
 
+def test_dash_is_standard_output_for_json_only(tmp_path, clicks, capsys, monkeypatch):
+    """`--write-model -` wrote a file named '-' after the solve."""
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(["solve", LEVER, str(clicks), "--estimate", "lever.angle", "-q", "--write-model", "-"]) == 2
+    assert "--write-model needs a file name: '-' (standard output) is taken by --json only" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+    assert cli.main(["solve", LEVER, str(clicks), "--estimate", "lever.angle", "-q", "--json", "-"]) == 0
+    assert '"lever.angle"' in capsys.readouterr().out
+
+
 def test_observe_applies_set_and_values_on_the_command_line_must_keep_the_model_valid(tmp_path, capsys):
     """observe ignored --set (a 1 mm lever read 0.294° instead of 79°); scene and render drew a box
     of negative size from --set; a value outside a parameter's hard limits was taken."""
@@ -228,7 +238,11 @@ def test_observe_applies_set_and_values_on_the_command_line_must_keep_the_model_
         open(LEVER).read().replace("param lever.length = 25 cm", "param lever.length = 25 cm limits [20 cm, 30 cm]")
     )
     assert cli.main(["scene", str(limited), "--set", "lever.length=50cm", "-o", str(tmp_path / "x.ply")]) == 2
-    assert "is outside the hard limits of lever.length" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    line = limited.read_text().splitlines().index("param lever.length = 25 cm limits [20 cm, 30 cm]") + 1
+    assert (
+        f"{limited}:{line}:1: --set lever.length: 0.5 m is outside the hard limits of lever.length [0.2, 0.3] m" in err
+    )
     assert not (tmp_path / "x.ply").exists()
 
 
@@ -311,6 +325,22 @@ def test_calibrate_camera_checks_its_images_before_the_solve(tmp_path, capsys, m
         assert cli.main(["calibrate-camera", str(model_path), str(corners), *extra]) == 2
         assert message in capsys.readouterr().err
     assert solved == []  # refused before the solve
+    (tmp_path / "ov").mkdir()
+    photo = tmp_path / "ov" / f"{view}_cam_reprojection.png"  # the name its overlay would have
+    Image.new("RGB", (640, 480)).save(photo)
+    before = photo.read_bytes()
+    argv = [
+        "calibrate-camera",
+        str(model_path),
+        str(corners),
+        "--image",
+        f"{view}={photo}",
+        "--overlay",
+        str(photo.parent),
+    ]
+    assert cli.main(argv) == 2
+    assert f"refusing to overwrite the input file {photo}" in capsys.readouterr().err
+    assert photo.read_bytes() == before and solved == []
 
 
 def test_an_input_file_given_twice_is_refused(clicks, capsys):
@@ -319,18 +349,27 @@ def test_an_input_file_given_twice_is_refused(clicks, capsys):
     assert f"{clicks} is given twice" in capsys.readouterr().err
 
 
-def test_an_overlay_never_replaces_a_photo_it_was_drawn_over_and_its_folder_is_checked(tmp_path, clicks, capsys):
+def test_an_overlay_never_replaces_a_photo_it_was_drawn_over_and_its_folder_is_checked(
+    tmp_path, clicks, capsys, monkeypatch
+):
     """--background pointing into the --overlay folder at a name the overlay writes was replaced by
-    the new picture (exit 0); --overlay '' was ignored; an --overlay folder the system refuses was
-    found after the solve; a folder and a file at one path were found after the overlays."""
+    the new picture (exit 0), then refused only after the solve; --overlay '' was ignored; an
+    --overlay folder the system refuses was found after the solve; a folder and a file at one path
+    were found after the overlays."""
+    import mbcal.api
+
     base = ["solve", LEVER, str(clicks), "--estimate", "lever.angle", "-q"]
     folder = tmp_path / "ov"
     assert cli.main([*base, "--overlay", str(folder)]) == 0
+    assert sorted(p.name for p in folder.iterdir()) == ["eye_after.png", "eye_before.png"]
     photo = folder / "eye_after.png"
     before = photo.read_bytes()
-    assert cli.main([*base, "--overlay", str(folder), "--background", f"eye={photo}"]) == 2
+    solved = []
+    with monkeypatch.context() as patch:
+        patch.setattr(mbcal.api, "calibrate", lambda *a, **k: solved.append(1))
+        assert cli.main([*base, "--overlay", str(folder), "--background", f"eye={photo}"]) == 2
     assert f"refusing to overwrite the input file {photo}" in capsys.readouterr().err
-    assert photo.read_bytes() == before
+    assert photo.read_bytes() == before and solved == []
     assert cli.main([*base, "--overlay", ""]) == 2
     assert "--overlay needs a folder name" in capsys.readouterr().err
     same = str(tmp_path / "r.mdl")

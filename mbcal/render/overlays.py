@@ -24,7 +24,7 @@ from mbcal.render.views import (
     wireframe_layer,
 )
 
-__all__ = ["calibration_overlays", "residual_plot", "BEFORE", "AFTER", "MEASURED"]
+__all__ = ["calibration_overlays", "planned_overlays", "residual_plot", "BEFORE", "AFTER", "MEASURED"]
 
 BEFORE = (215, 40, 40)
 AFTER = (20, 150, 60)
@@ -39,6 +39,28 @@ def _config_scene(scenes, config: int):
 
 def _safe(name: str) -> str:
     return "".join(c if c.isalnum() or c in "-_" else "_" for c in name)
+
+
+def _image_pairs(items) -> list[tuple[str, str]]:
+    """The (camera, configuration) pairs of the image points among ``items`` (measurements or
+    residual rows: both have ``kind``, ``refs`` and ``config``), in their order."""
+    return list(dict.fromkeys((r.refs["camera"], r.config) for r in items if r.kind == "image_point"))
+
+
+def overlay_files(model, camera: str, config: str, out_dir) -> tuple[Path, Path]:
+    """The before and after pictures :func:`calibration_overlays` writes for one camera and configuration."""
+    stem = _safe(model.short_name("camera", camera)) + ("" if config == "default" else f"_{_safe(config)}")
+    return Path(out_dir) / f"{stem}_before.png", Path(out_dir) / f"{stem}_after.png"
+
+
+def planned_overlays(model, measurements, out_dir, max_images: int = 24) -> list[Path]:
+    """The files :func:`calibration_overlays` will write for these measurements: known before the
+    solve, so that a name that is taken (an input photo in the same folder) is refused before it."""
+    return [
+        path
+        for camera, config in _image_pairs(measurements)[:max_images]
+        for path in overlay_files(model, camera, config, out_dir)
+    ]
 
 
 def calibration_overlays(
@@ -69,10 +91,10 @@ def calibration_overlays(
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     backgrounds = {model.resolve("camera", k): v for k, v in (backgrounds or {}).items()}
-    rows = [r for r in result.residuals if r.kind == "image_point"]
-    groups: dict[tuple[str, str], list] = {}
-    for r in rows:
-        groups.setdefault((r.refs["camera"], r.config), []).append(r)
+    groups: dict[tuple[str, str], list] = {pair: [] for pair in _image_pairs(result.residuals)}
+    for r in result.residuals:
+        if r.kind == "image_point":
+            groups[(r.refs["camera"], r.config)].append(r)
     if cameras is not None:
         wanted = {model.resolve("camera", c) for c in cameras}
         groups = {k: v for k, v in groups.items() if k[0] in wanted}
@@ -99,7 +121,7 @@ def calibration_overlays(
             measured = np.array([r.measured for r in members])
             after = np.array([r.predicted for r in members])
             before = np.array([predicted_before[problem.measurement_rows[index[r.id]]] for r in members])
-            stem = f"{_safe(model.short_name('camera', camera))}" + ("" if config == "default" else f"_{_safe(config)}")
+            before_file, after_file = overlay_files(model, camera, config, out_dir)
             img = draw_overlay(
                 background,
                 [
@@ -110,7 +132,7 @@ def calibration_overlays(
                     Layer("points", measured, MEASURED, 1.5, "measured points"),
                 ],
             )
-            save_png(img, out_dir / f"{stem}_before.png")
+            save_png(img, before_file)
             tips = after + vector_scale * (measured - after)
             img = draw_overlay(
                 background,
@@ -126,8 +148,8 @@ def calibration_overlays(
                     Layer("points", measured, MEASURED, 1.5, "measured points"),
                 ],
             )
-            save_png(img, out_dir / f"{stem}_after.png")
-            written += [out_dir / f"{stem}_before.png", out_dir / f"{stem}_after.png"]
+            save_png(img, after_file)
+            written += [before_file, after_file]
     return written
 
 

@@ -646,6 +646,25 @@ def calibrate_cameras(
     return CameraCalibration(result, start, cams, intrinsics, views, rms)
 
 
+def _view_image(images: Mapping[str, str], config: str, cam: str) -> str | None:
+    """The image given for a view: by ``CONFIG@CAMERA``, else by ``CONFIG``."""
+    return images.get(f"{config}@{cam}") or images.get(config)
+
+
+def _reprojection_file(model, config: str, cam: str, out_dir) -> Path:
+    return Path(out_dir) / f"{config}_{model.short_name('camera', cam).replace('.', '_')}_reprojection.png"
+
+
+def planned_reprojections(model, measurements, images: Mapping[str, str], out_dir) -> list[Path]:
+    """The files :func:`reprojection_images` will write for these measurements and images: known
+    before the solve, so that a name that is taken (an input image in the same folder) is refused
+    before it."""
+    views = dict.fromkeys((m.config, m.refs["camera"]) for m in measurements if m.kind == "image_point")
+    return [
+        _reprojection_file(model, config, cam, out_dir) for config, cam in views if _view_image(images, config, cam)
+    ]
+
+
 def reprojection_images(cc: CameraCalibration, images: Mapping[str, str], out_dir, *, vector_scale: float = 10.0):
     """Write each view's image with its measured (blue) and reprojected (red) corners."""
     out_dir = Path(out_dir)
@@ -657,7 +676,7 @@ def reprojection_images(cc: CameraCalibration, images: Mapping[str, str], out_di
         if r.kind == "image_point":
             groups.setdefault((r.config, r.refs["camera"]), []).append(r)
     for (config, cam), rows in groups.items():
-        path = images.get(f"{config}@{cam}") or images.get(config)
+        path = _view_image(images, config, cam)
         if path is None:
             continue
         image = load_image(path)
@@ -674,9 +693,9 @@ def reprojection_images(cc: CameraCalibration, images: Mapping[str, str], out_di
             ),
             Layer("points", predicted, (220, 30, 30), 0.8, "reprojected corners"),
         ]
-        name = f"{config}_{model.short_name('camera', cam).replace('.', '_')}_reprojection.png"
-        save_png(draw_overlay(image, layers), out_dir / name)
-        written.append(out_dir / name)
+        target = _reprojection_file(model, config, cam, out_dir)
+        save_png(draw_overlay(image, layers), target)
+        written.append(target)
     return written
 
 
