@@ -36,6 +36,8 @@ __all__ = [
     "KinematicsError",
     "UnreachableError",
     "suggest",
+    "shown",
+    "undecodable_at",
     "remember_source",
 ]
 
@@ -217,6 +219,25 @@ class UnreachableError(KinematicsError):
     out of reach, the closest pose found and its distance."""
 
     exit_code = 1
+
+
+def undecodable_at(path: str, err: UnicodeDecodeError, first_line: int = 1) -> SourceSpan:
+    """Where the first byte that is not UTF-8 lies in the text ``err`` failed on (its line counted
+    from ``first_line``): the column in characters, as an editor shows it, not in bytes."""
+    data, start = err.object, err.start
+    line_start = data.rfind(b"\n", 0, start) + 1
+    column = len(data[line_start:start].decode("utf-8", errors="replace")) + 1
+    return SourceSpan(path, first_line + data.count(b"\n", 0, start), column)
+
+
+def shown(value: object, limit: int = 60) -> str:
+    """``repr(value)`` for a message, cut in the middle when longer than ``limit`` characters: a
+    bad value of 100,000 characters is named, not echoed in full."""
+    text = repr(value)
+    if len(text) <= limit:
+        return text
+    half = (limit - 1) // 2
+    return f"{text[:half]}…{text[-half:]} ({len(text):,} characters)"
 
 
 def suggest(name: str, candidates: Iterable[str], n: int = 3) -> str | None:

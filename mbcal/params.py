@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from mbcal._jax import jnp
-from mbcal.errors import ParameterError, suggest
+from mbcal.errors import ParameterError, shown, suggest
 from mbcal.language.model import Model, ParamInfo
 
 Array = Any
@@ -346,7 +346,7 @@ def _finite(value: Any, what: str) -> float:
     try:
         v = float(value)
     except (TypeError, ValueError):
-        raise ParameterError(f"'{what}': not a number: {value!r}") from None
+        raise ParameterError(f"'{what}': not a number: {shown(value)}") from None
     if not np.isfinite(v):
         raise ParameterError(f"'{what}': value must be finite, got {v}")
     return v

@@ -236,7 +236,7 @@ def test_bad_json_is_located_by_line(tmp_path, room, monkeypatch):
     )
     with pytest.raises(MeasurementFileError) as info:
         read_measurements("m.json", room)
-    assert str(info.value).startswith("m.json:3:3: 'point': the model has no point named 'nowhere'")
+    assert str(info.value).startswith("m.json:3:54: 'point': the model has no point named 'nowhere'")
     write(tmp_path, "broken.json", '{"measurements": [\n  {"kind": }\n]}')
     with pytest.raises(MeasurementFileError, match=r"^broken.json:2:12: invalid JSON"):
         read_measurements("broken.json", room)
@@ -288,9 +288,13 @@ def test_csv_files_are_read_line_by_line_whatever_their_line_ends(room, tmp_path
         assert [m.where.line for m in ms] == [2, 3], name
     latin1 = "\n".join(rows).encode() + b"\nm3,image_point,eyes.left,lever.tip,5,6 \xb5m\n"
     (tmp_path / "latin1.csv").write_bytes(latin1)
-    with pytest.raises(MeasurementFileError, match=r"latin1.csv is not UTF-8 text \(line 4, byte 40\)") as info:
+    with pytest.raises(MeasurementFileError, match=r"latin1.csv:4:40: not UTF-8 text \(byte 40 of the line\)") as info:
         read_measurements(tmp_path / "latin1.csv", room)
-    assert info.value.span.line == 4
+    assert (info.value.span.line, info.value.span.column) == (4, 40)
+    (tmp_path / "latin1.json").write_bytes('[\n {"id": "µ", "x": '.encode() + b'"\xb5m"}]')
+    with pytest.raises(MeasurementFileError, match=r"latin1.json:2:20: not UTF-8 text \(byte 22\)") as info:
+        read_measurements(tmp_path / "latin1.json", room)
+    assert (info.value.span.line, info.value.span.column) == (2, 20)  # it said 1:1; µ is one character
 
 
 def test_a_sets_columns_follow_its_measurements_and_give_the_problems_values(tmp_path, room):
@@ -400,22 +404,30 @@ def lever_json(tmp_path, **extra):
     return write(tmp_path, "m.json", text)
 
 
+def _at(text: str, needle: str, start: int = 0) -> str:
+    """line:col of the first ``needle`` in ``text`` from offset ``start``."""
+    offset = text.index(needle, start)
+    return f"{text.count(chr(10), 0, offset) + 1}:{offset - (text.rfind(chr(10), 0, offset) + 1) + 1}"
+
+
 @pytest.mark.parametrize(
-    ("extra", "message", "hint"),
+    ("extra", "where", "message", "hint"),
     [
-        ({"sigam": 0.05}, "m.json:3:3: unknown key 'sigam'", "'sigma'"),
-        ({"Sigma_W": 0.05}, "m.json:3:3: unknown key 'sigma_w'", "did you mean 'sigma_"),
-        ({"param": "lever.angle"}, "m.json:3:3: unknown key 'param'", None),
-        ({"config": "a", "configuration": "b"}, "m.json:3:3: 'config' ('a') and 'configuration' ('b') name", None),
+        ({"sigam": 0.05}, '"sigam"', "unknown key 'sigam'", "'sigma'"),
+        ({"Sigma_W": 0.05}, '"Sigma_W"', "unknown key 'sigma_w'", "did you mean 'sigma_"),
+        ({"param": "lever.angle"}, '"param"', "unknown key 'param'", None),
+        ({"config": "a", "configuration": "b"}, None, "'config' ('a') and 'configuration' ('b') name", None),
     ],
 )
-def test_unknown_keys_in_json_records_are_errors(tmp_path, lever, monkeypatch, extra, message, hint):
-    """Like an unknown CSV column: a typo of 'sigma' would otherwise be the default σ = 1 px."""
+def test_unknown_keys_in_json_records_are_errors(tmp_path, lever, monkeypatch, extra, where, message, hint):
+    """Like an unknown CSV column: a typo of 'sigma' would otherwise be the default σ = 1 px.  The
+    error points at the key (it pointed at the record's '{'); one of the record as a whole at the
+    record."""
     monkeypatch.chdir(tmp_path)
-    lever_json(tmp_path, **extra)
+    text = lever_json(tmp_path, **extra).read_text()
     with pytest.raises(MeasurementFileError) as info:
         read_measurements("m.json", lever)
-    assert str(info.value).startswith(message), str(info.value)
+    assert str(info.value).startswith(f"m.json:{_at(text, where) if where else '3:3'}: {message}"), str(info.value)
     if hint:
         assert hint in str(info.value)
 
@@ -436,12 +448,45 @@ def test_a_json_records_error_names_its_line_and_column_however_the_file_is_laid
     else:
         text = '{"measurements": [\n' + ",\n".join(r.replace(", ", ",\n  ") for r in records) + "\n]}\n"
     write(tmp_path, "m.json", text)
-    offset = [i for i in range(len(text)) if text.startswith('{"kind"', i)][5]
-    line = text.count("\n", 0, offset) + 1
-    column = offset - (text.rfind("\n", 0, offset) + 1) + 1
     with pytest.raises(MeasurementFileError) as info:
         read_measurements("m.json", lever)
-    assert str(info.value).startswith(f"m.json:{line}:{column}: unknown key 'sigam'"), str(info.value)
+    key = _at(text, '"sigam"')
+    assert str(info.value).startswith(f"m.json:{key}: unknown key 'sigam'"), str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("extra", "where", "message"),
+    [
+        ({"u": "abc"}, '"abc"', "value 'u': expected a number, got 'abc'"),
+        ({"Sigma": -1}, "-1", "sigma must be positive, got -1"),
+        ({"kind": "image_pint"}, '"image_pint"', "unknown measurement kind 'image_pint'"),
+        ({"point": "lever.tap"}, '"lever.tap"', "'point': "),
+    ],
+)
+def test_an_error_in_a_json_records_value_points_at_the_value(tmp_path, lever, monkeypatch, extra, where, message):
+    """It pointed at the record's '{': in a record of a dozen keys the user had to find the one."""
+    monkeypatch.chdir(tmp_path)
+    text = lever_json(tmp_path, **extra).read_text()
+    with pytest.raises(MeasurementFileError) as info:
+        read_measurements("m.json", lever)
+    at = _at(text, where, text.index('"tip"'))  # in the second record
+    assert str(info.value).startswith(f"m.json:{at}: {message}"), str(info.value)
+
+
+def test_a_json_file_of_another_format_is_refused_at_its_format(tmp_path, lever, monkeypatch):
+    """'format' was not read: a file of another program or of a later mbcal was taken as ours."""
+    monkeypatch.chdir(tmp_path)
+    record = {"kind": "image_point", "camera": "eye", "point": "lever.hub", "u": 1.0, "v": 2.0}
+    text = '{"measurements": [' + json.dumps(record) + '],\n "format": "mbcal-measurements-2"}\n'
+    write(tmp_path, "m.json", text)
+    with pytest.raises(MeasurementFileError) as info:
+        read_measurements("m.json", lever)
+    assert str(info.value).startswith(
+        "m.json:2:12: 'format' is 'mbcal-measurements-2': this mbcal reads measurement files of format "
+        "'mbcal-measurements-1'"
+    ), str(info.value)
+    write(tmp_path, "m.json", text.replace("-2", "-1"))
+    assert len(read_measurements("m.json", lever).measurements) == 1
 
 
 @pytest.mark.parametrize(
@@ -728,7 +773,7 @@ def test_json_numbers_beyond_a_float_and_nesting_beyond_pythons_are_located_erro
             "m.json",
             '[{"kind": "image_point", "camera": "left", "point": "lever.tip", "u": 1, "v": ' + "7" * digits + "}]",
         )
-        with pytest.raises(MeasurementFileError, match=r"^m.json:1:2: value 'v': must be finite"):
+        with pytest.raises(MeasurementFileError, match=r"^m.json:1:79: value 'v': must be finite"):
             read_measurements("m.json", room)
     write(tmp_path, "m.json", "[" * 100_000 + "]" * 100_000)
     with pytest.raises(MeasurementFileError, match=r"^m.json:1:1: invalid JSON: nested too deeply"):
@@ -772,3 +817,15 @@ def test_an_error_in_a_long_line_shows_the_part_around_its_column(tmp_path):
     shown = MeasurementFileError("bad", SourceSpan(str(path), 1, 20_001)).render().splitlines()
     source, caret = shown[1], shown[2]
     assert len(source) < 200 and source[caret.index("^") : caret.index("^") + 3] == "BAD"
+
+
+def test_a_long_bad_value_is_named_not_echoed_in_full(tmp_path, lever, monkeypatch):
+    """A 100,000-character value was repeated whole in the message (the source line is cut to 160
+    characters, the quoted value was not)."""
+    monkeypatch.chdir(tmp_path)
+    lever_json(tmp_path, u="x" * 100_000)
+    with pytest.raises(MeasurementFileError) as info:
+        read_measurements("m.json", lever)
+    message = str(info.value)
+    assert "value 'u': expected a number, got 'xxx" in message and "(100,002 characters)" in message
+    assert len(message) < 200, len(message)

@@ -22,7 +22,7 @@ from pathlib import Path
 
 from mbcal import errors as _errors
 from mbcal.cache import CACHE_PARTS, Hasher, cache_dir
-from mbcal.errors import IncludeError, MdlSyntaxError, SourceSpan, remember_source
+from mbcal.errors import IncludeError, MdlSyntaxError, SourceSpan, remember_source, undecodable_at
 from mbcal.language import ast
 from mbcal.language.ast import deep_recursion
 from mbcal.outputs import atomic_write
@@ -239,9 +239,7 @@ def _read_model_text(path: Path, span: SourceSpan | None) -> str:
     try:
         return data.decode("utf-8-sig")  # a byte-order mark (some Windows editors write one) is not text
     except UnicodeDecodeError as err:
-        line = data.count(b"\n", 0, err.start) + 1
-        column = err.start - (data.rfind(b"\n", 0, err.start) + 1) + 1
-        where = SourceSpan(display_path(path), line, column)
+        where = undecodable_at(display_path(path), err)
         raise IncludeError(f"not UTF-8 text (byte {err.start}); is it a binary file?", where) from None
 
 

@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from mbcal.errors import MbcalError, MeasurementFileError, SourceSpan, suggest
+from mbcal.errors import MbcalError, MeasurementFileError, SourceSpan, shown, suggest, undecodable_at
 from mbcal.measurements.registry import get_model
 from mbcal.measurements.sets import (
     DEFAULT_CONFIG,
@@ -72,6 +72,7 @@ __all__ = [
 ]
 
 MAX_FILE_BYTES = 512 * 1024 * 1024
+FORMAT = "mbcal-measurements-1"  # a JSON file's "format": the one this version writes and reads
 
 
 # ---- CSV ---------------------------------------------------------------------------------------------
@@ -116,8 +117,8 @@ class _Lines:
             line = raw.decode("utf-8")
         except UnicodeDecodeError as err:
             raise MeasurementFileError(
-                f"{self.path} is not UTF-8 text (line {self.number}, byte {err.start + 1})",
-                SourceSpan(self.path, self.number, err.start + 1),
+                f"not UTF-8 text (byte {err.start + 1} of the line)",
+                undecodable_at(self.path, err, self.number),
             ) from None
         if "\r" in line.rstrip("\r\n"):
             first, *self.pending = line.splitlines(keepends=True)
@@ -259,6 +260,19 @@ def _object_keys(text: str, start: int) -> list[tuple[str, int]]:
     return keys
 
 
+def _key_span(text: str, path: str, start: int, key: str, value: bool = True) -> SourceSpan | None:
+    """Where ``key`` (compared without case) of the object at offset ``start`` is written, or its
+    value with ``value``; None when it cannot be found."""
+    offset = next((at for k, at in _object_keys(text, start) if k.lower() == key), None)
+    if offset is None:
+        return None
+    if value:
+        offset = json.JSONDecoder().raw_decode(text, offset)[1]
+        while offset < len(text) and text[offset] in " \t\r\n:":
+            offset += 1
+    return _span_at(text, path, offset)
+
+
 def _span_at(text: str, path: str, offset: int) -> SourceSpan:
     return SourceSpan(path, text.count("\n", 0, offset) + 1, offset - (text.rfind("\n", 0, offset) + 1) + 1)
 
@@ -351,15 +365,25 @@ def _read_json(text: str, path: str, builder: SetBuilder) -> None:
         raise MeasurementFileError(
             "the file must hold an object with 'measurements' (or a list)", SourceSpan(path, 1, 1)
         )
-    unknown = set(doc) - {"measurements", "known", "configurations", "images", "format", "version", "model", "comment"}
+    top = SourceSpan(path, 1, 1)
+    start = len(text) - len(text.lstrip())
+
+    def key_at(key: str, value: bool = True) -> SourceSpan:
+        return _key_span(text, path, start, key, value) or top
+
+    unknown = set(doc) - {"measurements", "known", "configurations", "images", "format", "model", "comment"}
     if unknown:
         key = sorted(unknown)[0]
         raise MeasurementFileError(
             f"unknown key '{key}'",
-            SourceSpan(path, 1, 1),
+            key_at(key, value=False),
             hint=suggest(key, ["measurements", "known", "configurations"]),
         )
-    top = SourceSpan(path, 1, 1)
+    if "format" in doc and doc["format"] != FORMAT:  # another program's file, or one of a later mbcal
+        raise MeasurementFileError(
+            f"'format' is {shown(doc['format'])}: this mbcal reads measurement files of format '{FORMAT}'",
+            key_at("format"),
+        )
     known = doc.get("known", {})
     if not isinstance(known, dict):
         raise MeasurementFileError("'known' must map parameter names to values", top)
@@ -409,16 +433,27 @@ def _read_json(text: str, path: str, builder: SetBuilder) -> None:
             raise MeasurementFileError(f"key '{twice}' written twice in measurements[{i}] (keys ignore case)", where)
         for key in record:
             if key not in allowed:  # a typo ("sigam") would silently be the default
-                raise MeasurementFileError(f"unknown key '{key}'", where, hint=suggest(key, allowed))
+                raise MeasurementFileError(
+                    f"unknown key '{key}'",
+                    (_key_span(text, path, offsets[i], key, value=False) if i < len(offsets) else None) or where,
+                    hint=suggest(key, allowed),
+                )
         if "configuration" in record:
             other = record.pop("configuration")
             if record.get("config", other) != other:
                 raise MeasurementFileError(
-                    f"'config' ({record['config']!r}) and 'configuration' ({other!r}) name different configurations",
+                    f"'config' ({shown(record['config'])}) and 'configuration' ({shown(other)}) name different "
+                    "configurations",
                     where,
                 )
             record["config"] = other
-        builder.add(record, where, i + 1)
+        try:
+            builder.add(record, where, i + 1)
+        except MeasurementFileError as err:
+            # An error about one value points at it, not at the record's '{' (found only on error).
+            if err.field and err.span == where and i < len(offsets):
+                err.span = _key_span(text, path, offsets[i], err.field.lower()) or where
+            raise
 
 
 def read_measurements(path: str | os.PathLike[str], model=None) -> MeasurementSet:
@@ -461,9 +496,7 @@ def read_measurements(path: str | os.PathLike[str], model=None) -> MeasurementSe
     try:
         text = p.read_bytes().decode("utf-8-sig")
     except UnicodeDecodeError as err:
-        raise MeasurementFileError(
-            f"{display} is not UTF-8 text (byte {err.start})", SourceSpan(display, 1, 1)
-        ) from None
+        raise MeasurementFileError(f"not UTF-8 text (byte {err.start})", undecodable_at(display, err)) from None
     _read_json(text, display, builder)
     return builder.result()
 
@@ -494,7 +527,7 @@ def write_measurements(ms: MeasurementSet, path: str | os.PathLike[str]) -> None
     p = Path(path)
     records = [_record(m) for m in ms.measurements]
     if p.suffix.lower() == ".json":
-        doc: dict[str, Any] = {"format": "mbcal-measurements-1"}
+        doc: dict[str, Any] = {"format": FORMAT}
         if ms.known:
             doc["known"] = ms.known
         if ms.configurations:

@@ -17,7 +17,7 @@ from typing import Any, NoReturn
 
 import numpy as np
 
-from mbcal.errors import MbcalError, MeasurementFileError, SourceSpan, suggest
+from mbcal.errors import MbcalError, MeasurementFileError, SourceSpan, shown, suggest
 from mbcal.measurements.protocol import MeasurementModel
 from mbcal.measurements.registry import registry
 from mbcal.units import ANGLE, LENGTH, UNITS, Dim, describe
@@ -321,7 +321,7 @@ def parse_quantity(
     the number; the two may not disagree.
     """
     if isinstance(text, bool):
-        raise MeasurementFileError(f"{what}: expected a number, got {text!r}", where)
+        raise MeasurementFileError(f"{what}: expected a number, got {shown(text)}", where)
     beside = str(unit).strip() if unit is not None else ""
     if isinstance(text, (int, float)):
         value = _float(text, where, what)
@@ -332,19 +332,19 @@ def parse_quantity(
             r"([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|[-+]?(?:nan|inf|infinity))\s*([A-Za-z]*)", s, re.I
         )
         if not m:
-            raise MeasurementFileError(f"{what}: expected a number (with an optional unit), got {s!r}", where)
+            raise MeasurementFileError(f"{what}: expected a number (with an optional unit), got {shown(s)}", where)
         value = float(m.group(1))
         written = m.group(2) or None
     if beside and written and beside != written:
         raise MeasurementFileError(
-            f"{what}: {text!r} says '{written}' but the unit column says '{beside}'", unit_where or where
+            f"{what}: {shown(text)} says '{written}' but the unit column says '{beside}'", unit_where or where
         )
     if beside:
         value *= _unit_to_si(beside, unit_where or where, what, dimension)
     elif written:
         value *= _unit_to_si(written, where, what, dimension)
     if not math.isfinite(value):
-        raise MeasurementFileError(f"{what}: value must be finite, got {text!r}", where)
+        raise MeasurementFileError(f"{what}: value must be finite, got {shown(text)}", where)
     return value
 
 
@@ -381,17 +381,17 @@ def _float(value: int | float, where: SourceSpan | None, what: str, field: str |
 
 def _number(text: Any, where: SourceSpan | None, what: str, field: str | None = None) -> float:
     if isinstance(text, bool) or text is None:
-        raise MeasurementFileError(f"{what}: expected a number, got {text!r}", where, field=field)
+        raise MeasurementFileError(f"{what}: expected a number, got {shown(text)}", where, field=field)
     if isinstance(text, str) and not _PLAIN_NUMBER.fullmatch(text):
-        raise MeasurementFileError(f"{what}: expected a number, got {text!r}", where, field=field)
+        raise MeasurementFileError(f"{what}: expected a number, got {shown(text)}", where, field=field)
     if isinstance(text, int):
         return _float(text, where, what, field)
     try:
         value = float(text)
     except (TypeError, ValueError):
-        raise MeasurementFileError(f"{what}: expected a number, got {text!r}", where, field=field) from None
+        raise MeasurementFileError(f"{what}: expected a number, got {shown(text)}", where, field=field) from None
     if not math.isfinite(value):
-        raise MeasurementFileError(f"{what}: must be finite, got {text!r}", where, field=field)
+        raise MeasurementFileError(f"{what}: must be finite, got {shown(text)}", where, field=field)
     return value
 
 
@@ -566,7 +566,7 @@ class SetBuilder:
                 raise MeasurementFileError(f"'{kind}' needs '{key}'", where, field=key)
             v = _number(raw, where, f"'{key}'", key)
             if key in mm.integer_data and v != int(v):
-                raise MeasurementFileError(f"'{key}' must be a whole number, got {raw!r}", where, field=key)
+                raise MeasurementFileError(f"'{key}' must be a whole number, got {shown(raw)}", where, field=key)
             data[key] = v
         unit = str(record.get("unit") or "").strip() or None
         factor = _unit_factor(unit, mm, where)
@@ -667,7 +667,7 @@ class SetBuilder:
                 continue
             s = _number(raw, where, "'sigma'", column) * factor
             if not s > 0:
-                raise MeasurementFileError(f"sigma must be positive, got {raw!r}", where, field=column)
+                raise MeasurementFileError(f"sigma must be positive, got {shown(raw)}", where, field=column)
             sigmas.append(s)
         key = (mm.kind, tuple(sigmas))
         shared = self._covariances.get(key)
@@ -819,7 +819,7 @@ def measurements_from_records(
     for config, values in (configurations or {}).items():
         if not isinstance(values, Mapping):
             raise MeasurementFileError(
-                f"configuration '{config}': expected a mapping of parameter values, got {values!r}"
+                f"configuration '{config}': expected a mapping of parameter values, got {shown(values)}"
             )
         builder.configuration(config, None)
         for name, value in values.items():
@@ -828,7 +828,7 @@ def measurements_from_records(
     for i, record in enumerate(records):
         if not isinstance(record, Mapping):
             raise MeasurementFileError(
-                f"record {i + 1}: expected a mapping (a dict like a JSON record), got {record!r}"
+                f"record {i + 1}: expected a mapping (a dict like a JSON record), got {shown(record)}"
             )
         lowered = {str(k).lower(): v for k, v in record.items()}
         for key in lowered:
