@@ -334,7 +334,7 @@ def test_a_joint_with_a_missing_link_is_an_error_at_its_line(tmp_path):
         '<robot name="r">\n  <link name="a"/>\n'
         '  <joint name="j" type="fixed">\n    <parent link="a"/>\n    <child link="b"/>\n  </joint>\n</robot>\n',
     )
-    with pytest.raises(MdlError, match=r"bad\.urdf:3:1: joint 'j' refers to a missing child link 'b'"):
+    with pytest.raises(MdlError, match=r"bad\.urdf:3:3: joint 'j' refers to a missing child link 'b'"):
         mbcal.load_model(path)
 
 
@@ -393,16 +393,19 @@ def test_a_value_the_urdf_reader_cannot_take_is_located_at_its_attribute(tmp_pat
 
 
 @pytest.mark.parametrize(
-    "change, message",
+    "change, where, message",
     [
-        (('xyz="0 0 0"', 'xyz="nan 0 0"'), "its <origin> is not finite numbers"),
-        (('<axis xyz="0 0 1"/>', '<axis xyz="0 0 0"/>'), "its <axis> must be a finite, non-zero vector"),
-        (('lower="-1" upper="1"', 'lower="1" upper="-1"'), "its <limit> must have lower ≤ upper"),
+        (('xyz="0 0 0"', 'xyz="nan 0 0"'), "8:5", "its <origin> is not finite numbers"),
+        (('<axis xyz="0 0 1"/>', '<axis xyz="0 0 0"/>'), "9:5", "its <axis> must be a finite, non-zero vector"),
+        (('lower="-1" upper="1"', 'lower="1" upper="-1"'), "10:5", "its <limit> must have lower ≤ upper"),
+        # the joint on one line: the column finds the element
+        (('<axis xyz="0 0 1"/>', '<axis xyz="0 0 0"/>'), "5:", "its <axis> must"),
     ],
 )
-def test_a_joints_bad_numbers_are_errors_at_the_joints_line(tmp_path, change, message):
+def test_a_joints_bad_numbers_are_errors_at_the_elements_line(tmp_path, change, where, message):
     """They were errors at a line of the .mdl written from the URDF ('robot.urdf.mdl:6:17: unexpected
-    'm''), a file the user never had."""
+    'm''), a file the user never had; then at the joint's line, column 1: now at the <origin>,
+    <axis> or <limit> element."""
     text = (
         '<?xml version="1.0"?>\n<robot name="r">\n  <link name="base"/>\n  <link name="a"/>\n'
         '  <joint name="j" type="revolute">\n    <parent link="base"/>\n    <child link="a"/>\n'
@@ -410,7 +413,13 @@ def test_a_joints_bad_numbers_are_errors_at_the_joints_line(tmp_path, change, me
         '    <limit lower="-1" upper="1" effort="1" velocity="1"/>\n  </joint>\n</robot>\n'
     )
     path = tmp_path / "robot.urdf"
-    path.write_text(text.replace(*change))
+    text = text.replace(*change)
+    if where == "5:":  # the whole joint on its first line
+        text = text.replace("\n    ", "")
+        where += str(text.splitlines()[4].index("<axis") + 1)
+    path.write_text(text)
     with pytest.raises(mbcal.MbcalError) as info:
         mbcal.load_model(path)
-    assert str(info.value).startswith(f"{path}:5:1: joint 'j': {message}")
+    assert str(info.value).startswith(f"{path}:{where}: joint 'j': {message}"), str(info.value)
+    line, column = map(int, where.split(":"))
+    assert text.splitlines()[line - 1][column - 1 :].startswith("<" + message.split("<")[1].split(">")[0])

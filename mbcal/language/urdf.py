@@ -75,19 +75,43 @@ class _Robot:
     path: Path
     urdf: Any  # yourdfpy.URDF
     tree: Any  # lxml ElementTree (comments kept), to locate lines and to edit
-    lines: dict[tuple[str, str], int]
+    elements: dict[tuple[str, str], Any]  # (kind, name) → its first <link> or <joint> element
     links: dict[str, str] = field(default_factory=dict)  # URDF name → mdl name
     joints: dict[str, str] = field(default_factory=dict)
     root: str = ""
     children: dict[str, list[Any]] = field(default_factory=dict)  # link → joints whose parent it is
 
-    def span(self, kind: str, name: str) -> SourceSpan | None:
-        line = self.lines.get((kind, name))
-        return SourceSpan(str(self.path), line, 1) if line else None
+    def span(self, kind: str, name: str, part: str | None = None) -> SourceSpan | None:
+        """Where the element is written (its ``<tag``), or its child ``part`` (``origin``, ``axis``,
+        ``limit``) where it has one."""
+        element = self.elements.get((kind, name))
+        if element is None or not element.sourceline:
+            return None
+        line, column = element.sourceline, 0
+        text = _source_lines(self.path)
+        if line <= len(text):  # the column of '<joint' naming it, on its line (a one-line file has several)
+            found = re.search(rf"<{kind}\b[^>]*\bname\s*=\s*[\"']{re.escape(name)}[\"']", text[line - 1])
+            column = found.start() if found else 0
+        child = next(element.iterchildren(part), None) if part else None
+        if child is not None and child.sourceline:
+            column = 0 if child.sourceline != line else column
+            line = child.sourceline
+            if line <= len(text):
+                column = max(text[line - 1].find(f"<{part}", column), 0)
+        return SourceSpan(str(self.path), line, column + 1)
 
-    def error(self, message: str, kind: str | None = None, name: str | None = None) -> UrdfError:
-        span = self.span(kind, name) if kind and name is not None else None
+    def error(
+        self, message: str, kind: str | None = None, name: str | None = None, part: str | None = None
+    ) -> UrdfError:
+        span = self.span(kind, name, part) if kind and name is not None else None
         return UrdfError(message if span else f"{self.path}: {message}", span)
+
+
+def _source_lines(path: Path) -> list[str]:
+    try:
+        return path.read_text(encoding="utf-8", errors="replace").splitlines()
+    except OSError:
+        return []
 
 
 def _identifier(name: str, taken: set[str], avoid: frozenset[str] | set[str] = frozenset()) -> str:
@@ -148,12 +172,12 @@ def read_robot(path: str | os.PathLike[str]) -> _Robot:
         raise UrdfError(
             f"the root element is <{root.tag}>, not <robot>", SourceSpan(str(path), root.sourceline or 1, 1)
         )
-    lines: dict[tuple[str, str], int] = {}
+    elements: dict[tuple[str, str], Any] = {}
     for kind in ("link", "joint"):
         for element in root.iterchildren(kind):
             name = element.get("name")
-            if name is not None and element.sourceline:
-                lines.setdefault((kind, name), element.sourceline)
+            if name is not None:
+                elements.setdefault((kind, name), element)
 
     import yourdfpy  # heavy (trimesh and more): loaded with the first URDF
 
@@ -168,7 +192,7 @@ def read_robot(path: str | os.PathLike[str]) -> _Robot:
             raise UrdfError(f"not a valid URDF ({detail})", where) from None
         raise UrdfError(f"{path}: not a valid URDF ({type(err).__name__}: {detail})") from None
 
-    robot = _Robot(path, urdf, tree, lines)
+    robot = _Robot(path, urdf, tree, elements)
     links = [link.name for link in urdf.robot.links]
     if not links:
         raise robot.error("the robot has no links")
@@ -200,12 +224,14 @@ def read_robot(path: str | os.PathLike[str]) -> _Robot:
         # checked here, at the joint's line: in the .mdl written from it they were errors at a line of
         # a file that does not exist ('robot.urdf.mdl:6:17: unexpected m ... nan m')
         if joint.origin is not None and not np.all(np.isfinite(np.asarray(joint.origin, dtype=float))):
-            raise robot.error(f"joint '{joint.name}': its <origin> is not finite numbers", "joint", joint.name)
+            raise robot.error(
+                f"joint '{joint.name}': its <origin> is not finite numbers", "joint", joint.name, "origin"
+            )
         if joint.type in MOVING:
             axis = np.asarray(joint.axis if joint.axis is not None else (1.0, 0.0, 0.0), dtype=float)
             if not (np.all(np.isfinite(axis)) and np.linalg.norm(axis) > 0):
                 raise robot.error(
-                    f"joint '{joint.name}': its <axis> must be a finite, non-zero vector", "joint", joint.name
+                    f"joint '{joint.name}': its <axis> must be a finite, non-zero vector", "joint", joint.name, "axis"
                 )
         limit = joint.limit
         if limit is not None and joint.type in ("revolute", "prismatic"):
@@ -215,6 +241,7 @@ def read_robot(path: str | os.PathLike[str]) -> _Robot:
                     f"joint '{joint.name}': its <limit> must have lower ≤ upper, got lower={low:g} upper={high:g}",
                     "joint",
                     joint.name,
+                    "limit",
                 )
         if joint.child in parent_of:
             raise robot.error(
