@@ -185,7 +185,16 @@ out = {{"imports_s": t1 - t0, "setup_s": t2 - t1}}
 # NumPy arguments, as least_squares passes them (jnp.asarray would compile a small program per
 # shape, ~10 ms each, inside the timed trace)
 args = (np.asarray(problem.y), np.asarray(problem.params.known))
-if {split}:
+if {floor}:  # the hand-written floor's first call, in its own fresh process
+    from floor import BUILDERS
+    from run import floor_solver
+    hand = floor_solver(BUILDERS[{name!r}](problem), problem.params.size, {iterations})
+    a = time.perf_counter(); lowered = hand.lower(starts, *args)
+    b = time.perf_counter(); compiled = lowered.compile()
+    c = time.perf_counter(); np.asarray(compiled(starts, *args))
+    d = time.perf_counter()
+    out.update(trace_s=b - a, compile_s=c - b, run_s=d - c)
+elif {split}:
     jitted = _compiled(problem.residual_function, SolverConfig(), problem.n_residuals)
     a = time.perf_counter(); lowered = jitted.lower(starts, args)
     b = time.perf_counter(); compiled = lowered.compile()
@@ -201,20 +210,27 @@ print(json.dumps(out))
 """
 
 
-def child(name: str, cache: Path | None, split: bool) -> dict:
+# The floor's fixed iteration count in its first-call process when the seed section did not run (it
+# gives the slowest mbcal restart's); its trace and compile do not depend on it (a fori_loop).
+FLOOR_ITERATIONS = 10
+
+
+def child(name: str, cache: Path | None, split: bool, floor: bool = False, iterations: int = FLOOR_ITERATIONS) -> dict:
     env = dict(os.environ)
     if cache is None:
         env["MBCAL_CACHE"] = "off"
     else:
         env["MBCAL_CACHE_DIR"] = str(cache)
-    code = CHILD.format(root=str(ROOT), bench=str(ROOT / "bench"), name=name, split=split)
+    code = CHILD.format(
+        root=str(ROOT), bench=str(ROOT / "bench"), name=name, split=split, floor=floor, iterations=iterations
+    )
     proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, cwd=ROOT)
     if proc.returncode:
         raise RuntimeError(f"benchmark child failed:\n{proc.stderr}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-def bench_startup(runs: int = 3) -> list[dict]:
+def bench_startup(runs: int = 3, iterations: dict[str, int] | None = None) -> list[dict]:
     """Each problem's first call in ``runs`` fresh processes (the best: other processes on a busy
     machine only ever add time), and ``runs`` pairs of processes sharing a new cache folder."""
     rows = []
@@ -222,6 +238,10 @@ def bench_startup(runs: int = 3) -> list[dict]:
         say(f"startup: {name}")
         splits = [child(name, None, split=True) for _ in range(runs)]
         split = min(splits, key=lambda r: r["trace_s"] + r["compile_s"] + r["run_s"])
+        # the hand-written floor (bench/floor.py) through the same steps, in fresh processes alike
+        count = (iterations or {}).get(name, FLOOR_ITERATIONS)
+        floors = [child(name, None, split=True, floor=True, iterations=count) for _ in range(runs)]
+        floor = min(floors, key=lambda r: r["trace_s"] + r["compile_s"] + r["run_s"])
         pairs = []
         for _ in range(runs):
             with tempfile.TemporaryDirectory() as tmp:
@@ -233,6 +253,9 @@ def bench_startup(runs: int = 3) -> list[dict]:
                 "problem": name,
                 **split,
                 "first_s": first["first_result_s"],
+                "floor_first_s": floor["trace_s"] + floor["compile_s"] + floor["run_s"],
+                "floor_trace_s": floor["trace_s"],
+                "floor_compile_s": floor["compile_s"],
                 "second_s": second["first_result_s"],
                 "imports_s": second["imports_s"],
                 "setup_s": second["setup_s"],
@@ -520,6 +543,11 @@ def report(results: dict, path: Path, plot: str | None) -> str:
             "the Marquardt loop, XLA's compile, the run.  *Second process*: the same problem in a new",
             "process that finds the persistent caches the first one wrote (`mbcal.cache`: the exported",
             "program and XLA's compilation cache).  Imports and model loading are listed apart.",
+            "*The floor's first call*: `bench/floor.py`'s hand-written residual in the seed section's",
+            "minimal loop (`floor_solver`, no convergence tests), lowered, compiled and run the same way",
+            "in fresh processes of its own: what a hand-written JAX program of the same problem, with",
+            "the same compiler options, costs on first call on this machine in this run (the notes",
+            "quote 1.1–2.2 s for theirs).",
             "Each the best of 3 fresh processes.  Profiled (issue 16), before → after: XLA:CPU's",
             "newer MLIR fusion emitters took half of the first call (room 1.5 → 0.8 s of compile CPU,",
             "arm 1.6 → 0.9 s) and ran these programs no faster, so mbcal compiles its own programs",
@@ -587,6 +615,7 @@ def report(results: dict, path: Path, plot: str | None) -> str:
                     f"{r['trace_s']:.2f}",
                     f"{r['compile_s']:.2f}",
                     f"{r['run_s']:.3f}",
+                    f"{r['floor_first_s']:.2f} ({r['floor_trace_s']:.2f} + {r['floor_compile_s']:.2f})",
                     f"{r['first_s']:.2f}",
                     f"{r['second_s']:.2f} ({verdict(r['second_s'], GOALS['second'], False)})",
                     f"{r['imports_s']:.2f}",
@@ -601,6 +630,7 @@ def report(results: dict, path: Path, plot: str | None) -> str:
                     "trace + lower",
                     "compile",
                     "run",
+                    "the floor's first call (s: trace + lower, compile)",
                     "first process with cache on (s)",
                     "second process (s, goal ≤ 0.3)",
                     "imports",
@@ -776,7 +806,8 @@ def notes(results: dict) -> list[str]:
             out.append(
                 f"- {r['problem']} first call {first:.2f} s > {GOALS['first']:g} s: tracing {r['trace_s']:.2f} s "
                 "(Python walking the "
-                f"model through vmap, jacfwd and the loop) and XLA's compile {r['compile_s']:.2f} s.  The "
+                f"model through vmap, jacfwd and the loop) and XLA's compile {r['compile_s']:.2f} s; the "
+                f"hand-written floor's first call in the same run: {r['floor_first_s']:.2f} s.  The "
                 "second process skips both (exported program + compilation cache); a cold first call remains."
             )
     if not out:
@@ -814,7 +845,9 @@ def run_parts(args: argparse.Namespace, out: Path, partial: bool) -> int:
     if "seed" in args.only:
         results["seed"] = bench_seed(SEED_REPEATS)
     if "startup" in args.only:
-        results["startup"] = bench_startup()
+        results["startup"] = bench_startup(
+            iterations={r["problem"]: r["mbcal_iterations_max"] for r in results.get("seed", [])}
+        )
     plot = None
     if "scaling" in args.only:
         results["scaling"] = bench_scaling(max(1, args.repeats // 2), args.quick)
