@@ -45,6 +45,18 @@ def parameter_vector(model: Model, values: Mapping[str, float] | None = None) ->
     return X
 
 
+def _constant_matrix(T: sm.Transform) -> np.ndarray | None:
+    """A transform whose entries are all numbers (no traced value) as a (4, 4) matrix, else None."""
+    R, t = T
+    entries = [*(v for row in R for v in row), *t]
+    if not all(isinstance(v, (float, int)) for v in entries):
+        return None
+    out = np.eye(4)
+    out[:3, :3] = np.asarray(R, dtype=float)
+    out[:3, 3] = np.asarray(t, dtype=float)
+    return out
+
+
 def _joint_motion(joint: JointInfo, ev) -> sm.Transform:
     q = ev(joint.q)
     axis = ev(joint.axis)
@@ -251,6 +263,10 @@ def modeler(
                 continue
             else:
                 value = ev(local)
+            fixed = _constant_matrix(value)
+            if fixed is not None:  # a pose or joint of numbers (the model's own values): one constant offset
+                const = const @ fixed
+                continue
             var = sm.compose(var, sm.compose(sm.from_constant(const, ir.TRANSFORM), value))
             const = np.eye(4)
         lazy.append((var, const))

@@ -113,7 +113,8 @@ class ParameterSet:
         self._config_index = {c: i for i, c in enumerate(configs)}
         n = len(model.params)
         base = np.tile(model.nominal, (len(configs), 1))
-        self._set(base, known)
+        given_values: set[int] = set()  # the parameters a caller or a file gives a value of
+        self._set(base, known, given_values)
         for given, values in (per_configuration or {}).items():
             row = self._config(given, given)
             for name, value in values.items():
@@ -125,7 +126,8 @@ class ParameterSet:
                         hint=f"declare it as 'param {name} = ... per configuration'",
                     )
                 base[row, i] = _finite(value, f"{name}@{given}")
-        self._set(base, overrides)
+                given_values.add(i)
+        self._set(base, overrides, given_values)
         self.known = base  # (C, n): the known values, and initial values of the unknowns
 
         unknowns: list[Unknown] = []
@@ -180,6 +182,15 @@ class ParameterSet:
         source = np.full((len(configs), n), -1, dtype=np.int64)
         source[self._rows, self._cols] = self._src
         self._source = source
+        # The model's own values: known in every configuration and given by nobody but the model
+        # (its design data), so every problem of this model and structure has them.  Views for a
+        # compiled program (``view(..., model_constants=True)``) hand them out as numbers, and the
+        # frames, points and cameras built from them fold while tracing: the room's residual 410 →
+        # 132 operations (issue 16).  Values given by a file, ``known`` or ``overrides`` stay inputs
+        # of the program: new values do not compile it again.
+        fixed = np.all(source < 0, axis=0)
+        fixed[list(given_values)] = False
+        self.model_constants: np.ndarray = fixed  # (n_params,) bool
 
     # ---- basic properties ----------------------------------------------------------------------
 
@@ -191,11 +202,13 @@ class ParameterSet:
             )
         return self._config_index[name]
 
-    def _set(self, base: np.ndarray, values: Mapping[str, float] | None) -> None:
-        """Write ``{name or name@config: value}`` into the (C, n) table of values."""
+    def _set(self, base: np.ndarray, values: Mapping[str, float] | None, given: set[int]) -> None:
+        """Write ``{name or name@config: value}`` into the (C, n) table of values; add the
+        parameters written to ``given``."""
         for key, value in (values or {}).items():
             name, config = _split(key)
             i = self.model.param_index(name)
+            given.add(i)
             rows = [self._config(config, key)] if config is not None else list(range(len(self.configurations)))
             if config is not None and not self.model.params[i].per_configuration:
                 raise ParameterError(f"'{name}' is not declared 'per configuration'; set it without '@{config}'")
@@ -285,14 +298,18 @@ class ParameterSet:
         base = jnp.asarray(self.known if known is None else known)
         return base, jnp.arange(base.shape[0])
 
-    def view(self, x: Array, known_row: Array, config: Array) -> ParamView:
+    def view(self, x: Array, known_row: Array, config: Array, *, model_constants: bool = False) -> ParamView:
         """One configuration's parameter values, reading unknowns from x and the rest from ``known_row``.
 
         Unlike a row of :meth:`param`, the known values carry no derivative: forward-mode
         differentiation then skips everything that depends on known values only (a camera on a
-        robot's neck, when only the arm is calibrated).
+        robot's neck, when only the arm is calibrated).  With ``model_constants`` the parameters
+        of :attr:`model_constants` are the model's nominal values as numbers, not read from
+        ``known_row``: a program traced so depends on them, and must be keyed by the model (as
+        :meth:`mbcal.problem.Problem.fingerprint` is).
         """
-        return ParamView(self._source, x, known_row, config)
+        constants = self.model.nominal if model_constants else None
+        return ParamView(self._source, x, known_row, config, constants, self.model_constants)
 
     def slots(self, configuration: int = 0) -> np.ndarray:
         """(n_params,) for each parameter of the model, the position in x of the unknown that gives
@@ -363,11 +380,21 @@ def _listing(model: Model) -> str:
 class ParamView:
     """Parameter values of one configuration, indexable like a row of X (see ParameterSet.view)."""
 
-    def __init__(self, source: np.ndarray, x: Array, known_row: Array, config: Array):
+    def __init__(
+        self,
+        source: np.ndarray,
+        x: Array,
+        known_row: Array,
+        config: Array,
+        constants: np.ndarray | None = None,
+        fixed: np.ndarray | None = None,
+    ):
         self._source = source
         self._x = x
         self._known = known_row
         self._config = config
+        self._constants = constants  # (n_params,) values of the parameters marked in ``fixed``
+        self._fixed = fixed
 
     def __len__(self) -> int:
         return int(self._source.shape[1])
@@ -381,6 +408,8 @@ class ParamView:
         return 1
 
     def __getitem__(self, i: int) -> Array:
+        if self._constants is not None and self._fixed is not None and self._fixed[i]:
+            return float(self._constants[i])  # the model's own value: a number, folded while tracing
         column = self._source[:, i]
         if np.all(column < 0):
             return self._known[i]  # known in every configuration: no derivative

@@ -221,10 +221,15 @@ class Problem:
 
     def scenes(self, x: Array, known: Array | None = None, needs=None):
         """The stacked scenes (one per configuration) for unknowns x, with what the measurements need
-        (``needs`` overrides it; ``Needs.everything()`` for a whole scene)."""
+        (``needs`` overrides it; ``Needs.everything()`` for a whole scene).  ``known`` gives the
+        known values; those the model alone gives (:attr:`ParameterSet.model_constants`) are its
+        nominal values, constants of the traced programs."""
         needs = self.needs if needs is None else needs
         rows, configs = self.params.views(x, known)
-        return jax.vmap(lambda row, c: modeler(self.model, self.params.view(x, row, c), needs))(rows, configs)
+        params = self.params
+        return jax.vmap(lambda row, c: modeler(self.model, params.view(x, row, c, model_constants=True), needs))(
+            rows, configs
+        )
 
     def _predict(self, x: Array, known: Array) -> Array:
         scenes = self.scenes(x, known)
@@ -401,6 +406,10 @@ class Problem:
                 sorted((k, v.tobytes()) for k, v in b.refs.items()),
             )
         h.add(self.prior_index, self.prior_sigma, self.prior_mean, self.params.known.shape)
+        # the model's own values are constants of the programs: which, and their values (a model
+        # changed in memory has the files of the one it came from)
+        constants = self.params.model_constants
+        h.add(constants, self.model.nominal[constants])
         return h.hexdigest()
 
     def local_residual(self, x: Array, d: Array, y: Array, known: Array) -> Array:

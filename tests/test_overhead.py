@@ -500,3 +500,39 @@ def test_the_analysis_programs_load_beside_the_solve_once_per_structure(camera, 
     with jax.default_device(jax.devices("cpu")[0]):  # a setting the thread would not inherit
         calibrate_cameras(camera, camera_data(camera, 16, seed=25))
     assert started and isinstance(started[0], api._Nothing)
+
+
+def _room_problem(known=None):
+    model = mbcal.load_model(MODELS / "teleexistence.mdl")
+    plan = mbcal.read_measurements(ROOT / "measurements" / "room_plan.csv", model)
+    data = mbcal.simulate(model, plan, {"room.x": 0.02, "room.yaw": 0.01}, noise=0.0)
+    return model, data, Problem(model, data, ["room.*"], known=known)
+
+
+def test_the_models_own_values_are_constants_of_the_program_and_given_values_are_inputs():
+    """Known values that only the model gives (its design data) fold into the traced residual:
+    the room's 410 operations became 132 (issue 16: trace and compile).  A value given by the
+    caller, a file or --set stays an input: the same model with another lever length has another
+    fingerprint and other programs, and its residual uses the value given, not the model's."""
+    model, data, plain = _room_problem()
+    constants = plain.params.model_constants
+    names = [p.name for p in model.params]
+    assert constants[names.index("lever.length")] and not constants[names.index("room.x")]
+    x = plain.params.x0 + 0.001
+    jaxpr = jax.make_jaxpr(lambda z: plain.residual_function(z, plain.y, plain.params.known))(x)
+    assert len(jaxpr.jaxpr.eqns) < 200, len(jaxpr.jaxpr.eqns)  # 410 with every known value an input
+
+    _, _, longer = _room_problem(known={"lever.length": 0.30})
+    assert not longer.params.model_constants[names.index("lever.length")]
+    assert longer.fingerprint() != plain.fingerprint()
+    assert longer._programs is not plain._programs
+    # each residual against the one computed op by op with every value an input (no folding)
+    for problem in (plain, longer):
+        scenes = jax.vmap(lambda row, needs=problem.needs: mbcal.modeler(model, row, needs))(problem.params.X(x))
+        h = np.concatenate([np.reshape(g.model.predict(scenes, g.batch), -1) for g in problem.groups])
+        assert np.allclose(problem.predict(x), h, rtol=0, atol=1e-9)
+    # 5 cm more lever: its tip and knob move in the image (pixels), nothing off the lever moves
+    moved = np.abs(longer.predict(x) - plain.predict(x)).reshape(-1, 2).max(axis=1)
+    point = [m.refs["point"] for m in data.measurements]
+    lengthwise = [p.endswith(("lever.tip", "lever.knob_front", "lever.middle")) for p in point]
+    assert np.all(moved[lengthwise] > 1.0) and np.all(moved[[not k for k in lengthwise]] < 1e-9), moved
