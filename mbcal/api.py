@@ -377,7 +377,8 @@ def _candidates(problem: Problem, measured_keys: set) -> tuple[list[dict[str, An
     given = problem.measurements.configurations
     configurations = {c: given.get(c, {}) for c in problem.params.configurations}
     plan = measurements_from_records(records, model, known=problem.measurements.known, configurations=configurations)
-    return records, Problem(model, plan, problem.unknown_names, priors=False)
+    # the caller's known values too (--set): the candidates are predicted with the values of the fit
+    return records, Problem(model, plan, problem.unknown_names, known=problem.known_given, priors=False)
 
 
 def _measured_keys(ms: MeasurementSet) -> set:

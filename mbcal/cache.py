@@ -341,6 +341,31 @@ def code_fingerprint() -> str:
     return h.hexdigest()
 
 
+def source_fingerprint(obj: Any) -> str | None:
+    """A hash of the source of the package (or single module) that defines ``obj``'s class: a
+    plugin's measurement model whose code changed never reuses a program exported with the old
+    code.  None when the code has no file to read (defined in an interactive session)."""
+    import sys
+
+    name = type(obj).__module__
+    top = sys.modules.get(name.split(".")[0])
+    module = sys.modules.get(name)
+    roots = [Path(p) for p in getattr(top, "__path__", [])] if name != "__main__" else []
+    files = sorted(f for root in roots for f in root.rglob("*.py"))
+    if not files:
+        single = getattr(module, "__file__", None)
+        if not single:
+            return None
+        files = [Path(single)]
+    h = hashlib.sha256()
+    for path in files:
+        try:
+            h.update(path.as_posix().encode() + b"\x1f" + path.read_bytes())
+        except OSError:
+            return None
+    return h.hexdigest()
+
+
 class Hasher:
     """A small helper to fingerprint mixed content (text, numbers, arrays, files)."""
 

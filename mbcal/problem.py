@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from mbcal._jax import jax, jit, jnp, release_memory
-from mbcal.cache import PROGRAMS, Hasher, code_fingerprint, enable_compilation_cache, exported
+from mbcal.cache import PROGRAMS, Hasher, code_fingerprint, enable_compilation_cache, exported, source_fingerprint
 from mbcal.errors import SolverError
 from mbcal.geometry import transforms as geo
 from mbcal.geometry.shapes import runtime_shapes
@@ -92,6 +92,9 @@ class Problem:
             )
         self.model = model
         self.measurements = measurements
+        self.known_given: dict[str, float] = dict(
+            known or {}
+        )  # the caller's values (--set), for problems made from this one
         self._fingerprint: str | None = None
         columns = measurements.columns()  # the set as arrays, built once per set (issue 15)
         self._columns = columns
@@ -253,13 +256,18 @@ class Problem:
             r = self._whitened(self._predict(x, known), y)
             if len(prior_index):
                 r = jnp.concatenate([r, (x[prior_index] - prior_mean) / prior_sigma])
-            return r
+            return self._unless_constants_changed(r, known)
 
         return residual
 
     @property
     def residual_function(self):
-        """``f(x, y, known) -> r``: the function handed to :func:`mbcal.solver.least_squares`."""
+        """``f(x, y, known) -> r``: the function handed to :func:`mbcal.solver.least_squares`.
+
+        ``known`` (C, n_params) may change between calls without a new compile, except in the
+        columns of :attr:`ParameterSet.model_constants` (the values only the model gives), which
+        the programs hold as constants: another value there makes r NaN (never silently
+        ignored); build a :class:`Problem` with ``known=`` to change one."""
         return self._fun
 
     def predict(self, x: Array | None = None) -> np.ndarray:
@@ -383,18 +391,22 @@ class Problem:
             return None
         if self._fingerprint is None:  # the files are hashed once per problem
             self._fingerprint = self._hash()
-        return self._fingerprint
+        return self._fingerprint or None
 
     def _hash(self) -> str:
         h = Hasher().add(code_fingerprint(), self.size, self.params.names, self.params._source)
         h.add(self.model.text_digest)  # models from text: the text itself (files are hashed below)
         for path in self.model.files:
             h.add(str(path)).add_file(path)
-        for shape in self.model.shapes:
-            if shape.mesh is not None:
-                h.add(shape.mesh.path).add_file(shape.mesh.path)
+        for path in self.model.data_files:  # meshes and point files: their contents are constants of the programs
+            h.add(str(path)).add_file(path)
         for g in self.groups:
             b = g.batch
+            if not type(g.model).__module__.startswith("mbcal."):  # a plugin's code is not mbcal's
+                plugin = source_fingerprint(g.model)
+                if plugin is None:
+                    return ""  # no file to hash: its programs are not kept across processes
+                h.add(plugin)
             h.add(
                 g.model.kind,
                 type(g.model).__module__,
@@ -438,14 +450,28 @@ class Problem:
                 rotation = (sm.matmul3(R0, sm.rotation_step((step[a], step[b], step[k]))), sm.ZERO3)
                 for node in triple.nodes:
                     replace[node] = rotation
-            return modeler(self.model, self.params.view(x_eff, row, c), self.needs, replace=replace)
+            view = self.params.view(x_eff, row, c, model_constants=True)  # as the residual: see scenes()
+            return modeler(self.model, view, self.needs, replace=replace)
 
         scenes = jax.vmap(scene)(rows, configs)
         parts = [jnp.reshape(g.model.predict(scenes, g.batch), (-1,)) for g in self.groups]
         r = self._whitened(jnp.concatenate(parts) if parts else jnp.zeros(0), y)
         if len(self.prior_index):
             r = jnp.concatenate([r, (x_eff[self.prior_index] - self.prior_mean) / self.prior_sigma])
-        return r
+        return self._unless_constants_changed(r, known)
+
+    def _unless_constants_changed(self, r: Array, known: Array) -> Array:
+        """``r``, or NaN throughout when ``known`` gives a model constant
+        (:attr:`ParameterSet.model_constants`) another value than the model's: the programs hold
+        those values, so a caller's other value would be ignored in silence; a solve on it stops
+        as non-finite instead.  Give such a value to the :class:`Problem` (``known=``)."""
+        constants = self.params.model_constants
+        if not constants.any():
+            return r
+        nominal = self.model.nominal
+        index = np.flatnonzero(constants)
+        same = jnp.all(jnp.asarray(known)[:, index] == nominal[index])
+        return jnp.where(same, r, jnp.nan)
 
     def check_ready(self) -> None:
         """Refuse problems the solver cannot start on (no unknowns, no values)."""

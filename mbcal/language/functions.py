@@ -178,7 +178,7 @@ def elementwise(array: ArrayImplementation) -> SoaImplementation:
 
     def soa(*args: Any) -> Any:
         if all(isinstance(a, float) for a in args):
-            return float(array(np, *args))
+            return sm.constant(lambda *values: array(np, *values), *args)
         return array(sm.jnp(), *args)
 
     return soa
@@ -196,7 +196,7 @@ def _neg_soa(a: Any) -> Any:
 
 
 def _pow_soa(a: Any, b: Any) -> Any:
-    return (a**b) if not (isinstance(a, float) and isinstance(b, float)) else float(a**b)
+    return (a**b) if not (isinstance(a, float) and isinstance(b, float)) else sm.constant(np.power, a, b)
 
 
 _INTERNAL: dict[str, Operation] = {

@@ -121,12 +121,23 @@ def neg(a: Scalar) -> Scalar:
     return -a
 
 
+def constant(f: Callable[..., Any], *args: float) -> float:
+    """``f`` of constants with IEEE results, as the traced program computes them: a division by
+    zero is ±inf, an overflow inf, a fractional power of a negative number NaN — not Python's
+    ZeroDivisionError, OverflowError or complex number (a known value of a model is a constant
+    while tracing, issue 16)."""
+    with np.errstate(all="ignore"):
+        return float(f(*(np.float64(a) for a in args)))
+
+
 def div(a: Scalar, b: Scalar) -> Scalar:
     """``a / b``, skipping a constant one below and a constant zero on top."""
     if _is(b, 1.0):
         return a
-    if _is(a, 0.0):
+    if _is(a, 0.0) and not _is(b, 0.0):
         return 0.0
+    if isinstance(a, float) and isinstance(b, float):
+        return constant(np.divide, a, b)
     return a / b
 
 
@@ -141,7 +152,7 @@ def total(items: Iterable[Scalar]) -> Scalar:
 def numpy_function(name: str, a: Scalar) -> Scalar:
     """``numpy.<name>(a)`` on a constant (a float again), ``jax.numpy.<name>(a)`` otherwise."""
     if isinstance(a, float):
-        return float(getattr(np, name)(a))
+        return constant(getattr(np, name), a)
     return getattr(jnp(), name)(a)
 
 
@@ -174,14 +185,14 @@ def broadcast(f: Callable[[Scalar, Scalar], Scalar], a: Any, b: Any) -> Any:
 def minimum(a: Scalar, b: Scalar) -> Scalar:
     """The smaller of two scalars, by selection (see ``min`` in :mod:`mbcal.language.functions`)."""
     if isinstance(a, float) and isinstance(b, float):
-        return min(a, b)
+        return a if a <= b else b  # the selection below, NaN included (Python's min keeps a NaN first)
     return jnp().where(a <= b, a, b)
 
 
 def maximum(a: Scalar, b: Scalar) -> Scalar:
     """The larger of two scalars, by selection."""
     if isinstance(a, float) and isinstance(b, float):
-        return max(a, b)
+        return a if a >= b else b
     return jnp().where(a >= b, a, b)
 
 

@@ -1,0 +1,135 @@
+"""The model's own known values are constants of a problem's programs (issue 16): the programs
+must compute with them as they computed with inputs, and must never serve other values."""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import sys
+
+import numpy as np
+import pytest
+
+import mbcal
+from mbcal.problem import Problem
+
+from conftest import MODELS
+
+CAMERA = "camera eye(width = 640, height = 480, f = 500) at look_at(eye = (0, -3 m, 1 m), target = (0, 0, 1 m))\n"
+
+
+def _one_point(body: str, model_text: str | None = None):
+    model = mbcal.load_model_text(model_text or f"param a = 0 m in [-1 m, 1 m]\n{body}\n{CAMERA}")
+    plan = mbcal.measurements_from_records(
+        [{"id": "p", "kind": "image_point", "camera": "eye", "point": "p", "sigma": 1.0}], model
+    )
+    return model, plan
+
+
+@pytest.mark.parametrize(
+    "value, expression, u",
+    [
+        ("0", "min(1 m / k, 2 m)", 652.8333333333334),  # 1 / 0 = inf, then the 2 m
+        ("0", "min(k^-1 * 1 m, 2 m)", 652.8333333333334),
+        ("-4", "max(k^0.5, 0) * 1 m", 319.5),  # (-4)^0.5 = NaN, and max(NaN, 0) = 0 as when traced
+    ],
+)
+def test_a_constant_computes_as_the_traced_value_did(value, expression, u):
+    """A known value of the model became a Python float while tracing: 1 / 0, 0^-1 and a negative
+    number to a fractional power raised ZeroDivisionError or gave a complex number (tracebacks),
+    where the traced program gives inf and NaN."""
+    model, plan = _one_point(f"param k = {value}\nframe f at (a, 0, 0) {{\n  point p = ({expression}, 0, 1 m)\n}}")
+    folded = Problem(model, plan, ["a"]).predict()
+    given = Problem(model, plan, ["a"], known={"k": float(value)}).predict()  # an input, as before
+    assert np.allclose(folded, [u, 239.5]) and np.allclose(given, folded)
+
+
+def test_a_known_array_that_changes_a_constant_gives_nan_not_the_old_value():
+    """residual_function(x, y, known) ignored the constant columns of a caller's known (the lever
+    length stayed 25 cm when known said 40 cm); the local residual read them: the two disagreed."""
+    model = mbcal.load_model(MODELS / "teleexistence.mdl")
+    plan = mbcal.read_measurements(MODELS.parent / "measurements" / "room_plan.csv", model)
+    data = mbcal.simulate(model, plan, {"room.x": 0.01}, noise=0.0)
+    problem = Problem(model, data, ["room.*"])
+    x, known = problem.params.x0, problem.params.known.copy()
+    d = np.zeros_like(x)
+    for f in (
+        lambda k: problem.residual_function(x, problem.y, k),
+        lambda k: problem.local.residual(x, d, problem.y, k),
+    ):
+        assert np.all(np.isfinite(f(known)))
+        changed = known.copy()
+        changed[:, model.param_index("lever.length")] = 0.40
+        assert np.all(np.isnan(f(changed)))
+    assert np.allclose(problem.residual_function(x, problem.y, known), problem.local.residual(x, d, problem.y, known))
+
+
+def test_point_files_and_plugin_code_are_part_of_the_fingerprint(tmp_path, monkeypatch):
+    """A point file's points are constants of the programs, and a plugin measurement model's code
+    is traced into them: an edited file or plugin reused the program of the old one from the
+    disk cache (silently the old points / the old prediction)."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "c.txt").write_text("0 0\n")
+    text = (
+        "param a = 0 m in [-1 m, 1 m]\n"
+        'frame f at (a, 0, 1 m) {\n  target t = points("c.txt", scale = 1 m, columns = 2)\n}\n' + CAMERA
+    )
+    (tmp_path / "m.mdl").write_text(text)
+
+    def fingerprint():
+        model = mbcal.load_model(tmp_path / "m.mdl")
+        plan = mbcal.measurements_from_records(
+            [{"id": "p", "kind": "image_point", "camera": "eye", "point": "f.t.p0", "sigma": 1.0}], model
+        )
+        return Problem(model, plan, ["a"]).fingerprint()
+
+    first = fingerprint()
+    (tmp_path / "c.txt").write_text("0.5 0\n")
+    assert fingerprint() != first
+
+    source = tmp_path / "zplugin.py"
+    source.write_text(
+        "from mbcal.measurements import MeasurementModel, Role\n"
+        "class PointZ(MeasurementModel):\n"
+        "    kind = 'point_z_test'\n"
+        "    roles = (Role('point', 'point'),)\n"
+        "    values = ('value',)\n"
+        "    value_dimension = 'length'\n"
+        "    def predict(self, scenes, batch):\n"
+        "        return 1.0 * scenes.points[batch.config, batch.refs['point']][:, 2:3]\n"
+    )
+    spec = importlib.util.spec_from_file_location("zplugin", source)
+    module = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "zplugin", module)
+    spec.loader.exec_module(module)
+    kinds = importlib.import_module("mbcal.measurements.registry")  # the package exports a function of its name
+    monkeypatch.setitem(kinds._EXTRA, "point_z_test", module.PointZ())  # register(), undone after
+    model = mbcal.load_model(MODELS / "lever.mdl")
+    plan = mbcal.measurements_from_records([{"id": "t", "kind": "point_z_test", "point": "lever.tip"}], model)
+    before = Problem(model, plan, ["lever.angle"]).fingerprint()
+    source.write_text(source.read_text().replace("1.0 *", "2.0 *"))
+    assert before is not None and Problem(model, plan, ["lever.angle"]).fingerprint() != before
+    monkeypatch.setitem(sys.modules, "zplugin", type(sys)("zplugin"))  # code without a file to hash
+    assert Problem(model, plan, ["lever.angle"]).fingerprint() is None  # then no disk cache
+
+
+def test_suggested_measurements_are_predicted_with_the_callers_known_values():
+    """The candidates' problem was built without the caller's known values (--set): a suggestion's
+    Jacobian row was that of the model's lever length, not of the one given."""
+    from mbcal import api
+
+    model = mbcal.load_model(MODELS / "lever.mdl")
+
+    def plan(point):
+        return mbcal.measurements_from_records(
+            [{"id": "m", "kind": "image_point", "camera": "eye", "point": point, "sigma": 1.0}], model
+        )
+
+    given = {"lever.length": 0.30}
+    problem = Problem(model, plan("lever.hub"), ["lever.angle"], known=given)
+    rows = api._candidate_rows(problem, problem.params.x0, api._measured_keys(plan("lever.hub")))
+    (tip,) = [J for record, J in rows if record.get("point") == "lever.tip"]
+    truth = Problem(model, plan("lever.tip"), ["lever.angle"], known=given)
+    assert np.allclose(tip, truth.jacobian(truth.params.x0), rtol=1e-9)
+    plain = Problem(model, plan("lever.tip"), ["lever.angle"])
+    assert not np.allclose(tip, plain.jacobian(plain.params.x0), rtol=1e-3)
