@@ -91,3 +91,15 @@ def test_hidden_edges_are_not_drawn():
     assert behind.any() and aside.any()
     assert not visible[behind].any()
     assert visible[aside].any()
+
+
+def test_a_model_without_shapes_renders_its_points_on_the_background():
+    """It raised 'NumPy boolean array indexing assignment cannot assign 3 input values to the 0
+    output values' (mbcal render, and --overlay after a whole solve)."""
+    model = load_model_text(
+        "param a = 0 m\nframe f at (a, 0, 1 m) {\n  point p = (0, 0, 0)\n}\n"
+        "camera eye(width = 64, height = 48, f = 50) at look_at(eye = (0, -3 m, 1 m), target = (0, 0, 1 m))\n"
+    )
+    view = render_view(modeler(model, model.nominal), "eye", points=True, point_radius=0.05)
+    assert view.color.shape == (48, 64, 3)
+    assert np.any(view.shape_index == 0) and (view.shape_index[24, 32] == 0)  # the point, at the centre

@@ -128,8 +128,9 @@ def render_view(
     poses = np.asarray(scene.shape_poses, dtype=float)
     dims = np.asarray(scene.shape_dims, dtype=float)
     colors = _palette(len(model.shapes))
-    flat = np.array([get_shape(s.kind).flat for s in model.shapes], dtype=bool)
-    colors[flat] = (0.82, 0.82, 0.80)  # walls and floors in a neutral grey
+    for i, shape in enumerate(model.shapes):
+        if get_shape(shape.kind).flat:
+            colors[i] = (0.82, 0.82, 0.80)  # walls and floors in a neutral grey
     pr_scene = pyrender.Scene(bg_color=[*background, 1.0], ambient_light=[0.35, 0.35, 0.35])
     seg_map = {}
     for i, shape in enumerate(model.shapes):
