@@ -423,6 +423,8 @@ def _check_outputs(args, inputs) -> None:
     overlay = getattr(args, "overlay", None)
     if overlay == "":
         raise MbcalError("--overlay needs a folder name, got an empty one")
+    if overlay == "-":
+        raise MbcalError("--overlay needs a folder name: '-' (standard output) is taken by --json only")
     if overlay:
         folder = check_output_folder(overlay, "--overlay").resolve()
         if folder in claimed:

@@ -215,6 +215,8 @@ def test_dash_is_standard_output_for_json_only(tmp_path, clicks, capsys, monkeyp
     monkeypatch.chdir(tmp_path)
     assert cli.main(["solve", LEVER, str(clicks), "--estimate", "lever.angle", "-q", "--write-model", "-"]) == 2
     assert "--write-model needs a file name: '-' (standard output) is taken by --json only" in capsys.readouterr().err
+    assert cli.main(["solve", LEVER, str(clicks), "--estimate", "lever.angle", "-q", "--overlay", "-"]) == 2
+    assert "--overlay needs a folder name: '-'" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
     assert cli.main(["solve", LEVER, str(clicks), "--estimate", "lever.angle", "-q", "--json", "-"]) == 0
     assert '"lever.angle"' in capsys.readouterr().out

@@ -250,8 +250,8 @@ def test_a_byte_order_mark_is_skipped_and_bytes_that_are_not_utf8_are_located(tm
     latin.write_bytes(b"param a = 1 m\n# caf\xe9\n")
     with pytest.raises(errors.IncludeError) as info:
         load_model(latin)
-    assert ":2:6: not UTF-8 text (byte 19)" in str(info.value)
+    assert ":2:6: not UTF-8 text (byte 20)" in str(info.value)
     latin.write_bytes("param a = 1 m\n# µµ ".encode() + b"caf\xe9\n")  # the column counts characters, not bytes
     with pytest.raises(errors.IncludeError) as info:
         load_model(latin)
-    assert ":2:9: not UTF-8 text (byte 24)" in str(info.value)
+    assert ":2:9: not UTF-8 text (byte 25)" in str(info.value)

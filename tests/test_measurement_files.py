@@ -292,7 +292,7 @@ def test_csv_files_are_read_line_by_line_whatever_their_line_ends(room, tmp_path
         read_measurements(tmp_path / "latin1.csv", room)
     assert (info.value.span.line, info.value.span.column) == (4, 40)
     (tmp_path / "latin1.json").write_bytes('[\n {"id": "µ", "x": '.encode() + b'"\xb5m"}]')
-    with pytest.raises(MeasurementFileError, match=r"latin1.json:2:20: not UTF-8 text \(byte 22\)") as info:
+    with pytest.raises(MeasurementFileError, match=r"latin1.json:2:20: not UTF-8 text \(byte 23\)") as info:
         read_measurements(tmp_path / "latin1.json", room)
     assert (info.value.span.line, info.value.span.column) == (2, 20)  # it said 1:1; µ is one character
 
@@ -829,3 +829,34 @@ def test_a_long_bad_value_is_named_not_echoed_in_full(tmp_path, lever, monkeypat
     message = str(info.value)
     assert "value 'u': expected a number, got 'xxx" in message and "(100,002 characters)" in message
     assert len(message) < 200, len(message)
+
+
+@pytest.mark.parametrize(
+    ("top", "message_at"),
+    [
+        # a "measurements" key inside another top-level value drew the record offsets from it
+        ('{"comment": {"measurements": [1, 2]},\n "measurements": [\n', "4:"),
+        # the key written with an escape: found by its value, not by a text search
+        ('{"\\u006deasurements": [\n', "3:"),
+    ],
+)
+def test_a_record_error_is_located_whatever_else_the_top_level_holds(tmp_path, lever, monkeypatch, top, message_at):
+    monkeypatch.chdir(tmp_path)
+    good = {"kind": "image_point", "camera": "eye", "point": "lever.tip", "u": 1, "v": 2}
+    text = top + " " + json.dumps(good) + ",\n " + json.dumps({**good, "sigma": "abc"}) + "\n]}\n"
+    write(tmp_path, "m.json", text)
+    with pytest.raises(MeasurementFileError) as info:
+        read_measurements("m.json", lever)
+    line = int(message_at.rstrip(":"))
+    column = text.splitlines()[line - 1].index('"abc"') + 1
+    assert str(info.value).startswith(f"m.json:{line}:{column}: 'sigma': expected a number"), str(info.value)
+
+
+def test_an_unknown_top_level_key_is_located_also_when_it_differs_from_a_known_one_by_case(
+    tmp_path, lever, monkeypatch
+):
+    monkeypatch.chdir(tmp_path)
+    write(tmp_path, "m.json", '{\n "Format": "mbcal-measurements-1",\n "measurements": []}\n')
+    with pytest.raises(MeasurementFileError) as info:
+        read_measurements("m.json", lever)
+    assert str(info.value).startswith("m.json:2:2: unknown key 'Format'"), str(info.value)  # it said 1:1

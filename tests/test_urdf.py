@@ -423,3 +423,21 @@ def test_a_joints_bad_numbers_are_errors_at_the_elements_line(tmp_path, change, 
     assert str(info.value).startswith(f"{path}:{where}: joint 'j': {message}"), str(info.value)
     line, column = map(int, where.split(":"))
     assert text.splitlines()[line - 1][column - 1 :].startswith("<" + message.split("<")[1].split(">")[0])
+
+
+def test_a_start_tag_split_over_lines_is_located_at_its_opening(tmp_path):
+    """lxml gives the line where a start tag ends: a '<joint' written over three lines was
+    reported at its 'type=' line, column 1."""
+    path = tmp_path / "robot.urdf"
+    path.write_text(
+        '<robot name="r">\n<link name="base"/>\n<link name="l1"/>\n<joint\n   name="j1"\n   type="revolute">\n'
+        '  <parent link="base"/>\n  <child link="l1"/>\n  <axis\n     xyz="0 0 0"/>\n'
+        '  <limit lower="0" upper="1" effort="1" velocity="1"/>\n</joint>\n</robot>\n'
+    )
+    with pytest.raises(mbcal.MbcalError) as info:
+        mbcal.load_model(path)
+    assert str(info.value).startswith(f"{path}:9:3: joint 'j1': its <axis> must be"), str(info.value)
+    path.write_text(path.read_text().replace('<child link="l1"/>', '<child link="l2"/>'))
+    with pytest.raises(mbcal.MbcalError) as info:
+        mbcal.load_model(path)
+    assert str(info.value).startswith(f"{path}:4:1: joint 'j1' refers to a missing child link 'l2'"), str(info.value)

@@ -240,7 +240,7 @@ def _read_model_text(path: Path, span: SourceSpan | None) -> str:
         return data.decode("utf-8-sig")  # a byte-order mark (some Windows editors write one) is not text
     except UnicodeDecodeError as err:
         where = undecodable_at(display_path(path), err)
-        raise IncludeError(f"not UTF-8 text (byte {err.start}); is it a binary file?", where) from None
+        raise IncludeError(f"not UTF-8 text (byte {err.start + 1}); is it a binary file?", where) from None
 
 
 def parse_file(path: str | os.PathLike[str]) -> tuple[ast.Statement, ...]:

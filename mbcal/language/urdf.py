@@ -83,22 +83,23 @@ class _Robot:
 
     def span(self, kind: str, name: str, part: str | None = None) -> SourceSpan | None:
         """Where the element is written (its ``<tag``), or its child ``part`` (``origin``, ``axis``,
-        ``limit``) where it has one."""
+        ``limit``) where it has one; a start tag split over lines is found at its ``<`` (lxml
+        knows the line where the tag ends)."""
         element = self.elements.get((kind, name))
         if element is None or not element.sourceline:
             return None
-        line, column = element.sourceline, 0
-        text = _source_lines(self.path)
-        if line <= len(text):  # the column of '<joint' naming it, on its line (a one-line file has several)
-            found = re.search(rf"<{kind}\b[^>]*\bname\s*=\s*[\"']{re.escape(name)}[\"']", text[line - 1])
-            column = found.start() if found else 0
-        child = next(element.iterchildren(part), None) if part else None
-        if child is not None and child.sourceline:
-            column = 0 if child.sourceline != line else column
-            line = child.sourceline
-            if line <= len(text):
-                column = max(text[line - 1].find(f"<{part}", column), 0)
-        return SourceSpan(str(self.path), line, column + 1)
+        fallback = SourceSpan(str(self.path), element.sourceline, 1)
+        text = _source_text(self.path)
+        tag = re.compile(rf"<{kind}\b[^>]*?\bname\s*=\s*[\"']{re.escape(name)}[\"']")
+        found = tag.search(text)
+        if found is None:
+            return fallback
+        offset = found.start()
+        if part is not None and next(element.iterchildren(part), None) is not None:
+            child = re.compile(rf"<{part}\b").search(text, found.end())  # the first after the tag: its own
+            offset = child.start() if child else offset
+        line = text.count("\n", 0, offset) + 1
+        return SourceSpan(str(self.path), line, offset - (text.rfind("\n", 0, offset) + 1) + 1)
 
     def error(
         self, message: str, kind: str | None = None, name: str | None = None, part: str | None = None
@@ -107,11 +108,11 @@ class _Robot:
         return UrdfError(message if span else f"{self.path}: {message}", span)
 
 
-def _source_lines(path: Path) -> list[str]:
+def _source_text(path: Path) -> str:
     try:
-        return path.read_text(encoding="utf-8", errors="replace").splitlines()
+        return path.read_text(encoding="utf-8", errors="replace")
     except OSError:
-        return []
+        return ""
 
 
 def _identifier(name: str, taken: set[str], avoid: frozenset[str] | set[str] = frozenset()) -> str:

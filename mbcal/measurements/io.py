@@ -35,7 +35,6 @@ import csv
 import io
 import json
 import os
-import re
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -215,14 +214,15 @@ def _read_csv(handle, path: str, builder: SetBuilder) -> None:
 def _json_line_index(text: str) -> list[int]:
     """Character offsets of the elements of the top-level "measurements" array (or top-level array)."""
     decoder = json.JSONDecoder()
-    m = re.search(r'"measurements"\s*:\s*\[', text)
-    if m is not None:
-        pos = m.end()
-    else:
+    start = _top_value(text, "measurements")
+    if start is None:
         stripped = text.lstrip()
         if not stripped.startswith("["):
             return []
-        pos = text.index("[") + 1
+        start = text.index("[")
+    elif not text.startswith("[", start):
+        return []
+    pos = start + 1
     offsets = []
     try:
         while True:
@@ -260,17 +260,34 @@ def _object_keys(text: str, start: int) -> list[tuple[str, int]]:
     return keys
 
 
-def _key_span(text: str, path: str, start: int, key: str, value: bool = True) -> SourceSpan | None:
-    """Where ``key`` (compared without case) of the object at offset ``start`` is written, or its
-    value with ``value``; None when it cannot be found."""
-    offset = next((at for k, at in _object_keys(text, start) if k.lower() == key), None)
+def _key_offset(text: str, start: int, key: str, value: bool = True) -> int | None:
+    """The offset of ``key`` of the object at offset ``start`` (as written, else without case:
+    a record's keys ignore case), or of its value with ``value``; None when it cannot be found."""
+    keys = _object_keys(text, start)
+    offset = next((at for k, at in keys if k == key), None)
+    if offset is None:
+        offset = next((at for k, at in keys if k.lower() == key.lower()), None)
     if offset is None:
         return None
     if value:
         offset = json.JSONDecoder().raw_decode(text, offset)[1]
         while offset < len(text) and text[offset] in " \t\r\n:":
             offset += 1
-    return _span_at(text, path, offset)
+    return offset
+
+
+def _top_value(text: str, key: str) -> int | None:
+    """The offset of the value of ``key`` in the file's top-level object (not a key of that name
+    in some nested object: a "comment" object may hold one too)."""
+    start = len(text) - len(text.lstrip())
+    return _key_offset(text, start, key) if text.startswith("{", start) else None
+
+
+def _key_span(text: str, path: str, start: int, key: str, value: bool = True) -> SourceSpan | None:
+    """Where ``key`` of the object at offset ``start`` (see :func:`_key_offset`) is written, or
+    its value with ``value``; None when it cannot be found."""
+    offset = _key_offset(text, start, key, value)
+    return None if offset is None else _span_at(text, path, offset)
 
 
 def _span_at(text: str, path: str, offset: int) -> SourceSpan:
@@ -280,11 +297,11 @@ def _span_at(text: str, path: str, offset: int) -> SourceSpan:
 def _json_key_spans(text: str, path: str, section: str) -> dict[str, SourceSpan]:
     """Where each key of the top-level object ``section`` ("known", "configurations") is written
     (best effort: keys not found are left out)."""
-    m = re.search(r'"' + section + r'"\s*:\s*\{', text)
-    if m is None:
+    start = _top_value(text, section)
+    if start is None or not text.startswith("{", start):
         return {}
     spans: dict[str, SourceSpan] = {}
-    for key, offset in _object_keys(text, m.end() - 1):
+    for key, offset in _object_keys(text, start):
         spans.setdefault(key, _span_at(text, path, offset))
     return spans
 
@@ -496,7 +513,7 @@ def read_measurements(path: str | os.PathLike[str], model=None) -> MeasurementSe
     try:
         text = p.read_bytes().decode("utf-8-sig")
     except UnicodeDecodeError as err:
-        raise MeasurementFileError(f"not UTF-8 text (byte {err.start})", undecodable_at(display, err)) from None
+        raise MeasurementFileError(f"not UTF-8 text (byte {err.start + 1})", undecodable_at(display, err)) from None
     _read_json(text, display, builder)
     return builder.result()
 
