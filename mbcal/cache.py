@@ -41,6 +41,7 @@ import hashlib
 import math
 import os
 import re
+import sys
 import threading
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
@@ -345,8 +346,6 @@ def source_fingerprint(obj: Any) -> str | None:
     """A hash of the source of the package (or single module) that defines ``obj``'s class: a
     plugin's measurement model whose code changed never reuses a program exported with the old
     code.  None when the code has no file to read (defined in an interactive session)."""
-    import sys
-
     name = type(obj).__module__
     top = sys.modules.get(name.split(".")[0])
     module = sys.modules.get(name)

@@ -209,10 +209,11 @@ def _check_values(model, values: dict[str, float], option: str = "--set") -> dic
             high = math.inf if info.limit_upper is None else info.limit_upper
             if not low <= value <= high:
                 unit = info.unit
+                suffix = f" {unit}" if unit else ""
                 low_high = ", ".join(f"{to_display(unit, v):g}" for v in (low, high))
                 raise MbcalError(
-                    f"{option} {key}: {to_display(unit, value):g}{' ' + unit if unit else ''} is outside the hard "
-                    f"limits of {name} [{low_high}]{' ' + unit if unit else ''}",
+                    f"{option} {key}: {to_display(unit, value):g}{suffix} is outside the hard "
+                    f"limits of {name} [{low_high}]{suffix}",
                     info.span,
                 )
             if "@" not in key:  # one configuration's value: checked against the limits only

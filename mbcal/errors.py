@@ -77,6 +77,11 @@ class SourceSpan:
     def __str__(self) -> str:
         return f"{self.path}:{self.line}:{self.column}"
 
+    @staticmethod
+    def at_offset(path: str, text: str, offset: int) -> SourceSpan:
+        """The line and column of character ``offset`` of ``text`` (lines end at ``\\n``)."""
+        return SourceSpan(path, text.count("\n", 0, offset) + 1, offset - (text.rfind("\n", 0, offset) + 1) + 1)
+
 
 class MbcalError(Exception):
     """Base of every error a user of mbcal can cause.

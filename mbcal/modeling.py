@@ -48,13 +48,9 @@ def parameter_vector(model: Model, values: Mapping[str, float] | None = None) ->
 def _constant_matrix(T: sm.Transform) -> np.ndarray | None:
     """A transform whose entries are all numbers (no traced value) as a (4, 4) matrix, else None."""
     R, t = T
-    entries = [*(v for row in R for v in row), *t]
-    if not all(isinstance(v, (float, int)) for v in entries):
+    if not all(isinstance(v, float) for v in (*(v for row in R for v in row), *t)):
         return None
-    out = np.eye(4)
-    out[:3, :3] = np.asarray(R, dtype=float)
-    out[:3, 3] = np.asarray(t, dtype=float)
-    return out
+    return np.asarray(sm.transform_to_matrix(T), dtype=float)  # NumPy for numbers: nothing traced
 
 
 def _joint_motion(joint: JointInfo, ev) -> sm.Transform:

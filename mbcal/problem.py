@@ -92,9 +92,8 @@ class Problem:
             )
         self.model = model
         self.measurements = measurements
-        self.known_given: dict[str, float] = dict(
-            known or {}
-        )  # the caller's values (--set), for problems made from this one
+        # the caller's values (--set), for problems made from this one (the candidate measurements')
+        self.known_given: dict[str, float] = dict(known or {})
         self._fingerprint: str | None = None
         columns = measurements.columns()  # the set as arrays, built once per set (issue 15)
         self._columns = columns

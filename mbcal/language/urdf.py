@@ -98,8 +98,7 @@ class _Robot:
         if part is not None and next(element.iterchildren(part), None) is not None:
             child = re.compile(rf"<{part}\b").search(text, found.end())  # the first after the tag: its own
             offset = child.start() if child else offset
-        line = text.count("\n", 0, offset) + 1
-        return SourceSpan(str(self.path), line, offset - (text.rfind("\n", 0, offset) + 1) + 1)
+        return SourceSpan.at_offset(str(self.path), text, offset)
 
     def error(
         self, message: str, kind: str | None = None, name: str | None = None, part: str | None = None

@@ -276,22 +276,18 @@ def _key_offset(text: str, start: int, key: str, value: bool = True) -> int | No
     return offset
 
 
-def _top_value(text: str, key: str) -> int | None:
+def _top_value(text: str, key: str, value: bool = True) -> int | None:
     """The offset of the value of ``key`` in the file's top-level object (not a key of that name
-    in some nested object: a "comment" object may hold one too)."""
+    in some nested object: a "comment" object may hold one too), or of the key itself."""
     start = len(text) - len(text.lstrip())
-    return _key_offset(text, start, key) if text.startswith("{", start) else None
+    return _key_offset(text, start, key, value) if text.startswith("{", start) else None
 
 
 def _key_span(text: str, path: str, start: int, key: str, value: bool = True) -> SourceSpan | None:
     """Where ``key`` of the object at offset ``start`` (see :func:`_key_offset`) is written, or
     its value with ``value``; None when it cannot be found."""
     offset = _key_offset(text, start, key, value)
-    return None if offset is None else _span_at(text, path, offset)
-
-
-def _span_at(text: str, path: str, offset: int) -> SourceSpan:
-    return SourceSpan(path, text.count("\n", 0, offset) + 1, offset - (text.rfind("\n", 0, offset) + 1) + 1)
+    return None if offset is None else SourceSpan.at_offset(path, text, offset)
 
 
 def _json_key_spans(text: str, path: str, section: str) -> dict[str, SourceSpan]:
@@ -302,7 +298,7 @@ def _json_key_spans(text: str, path: str, section: str) -> dict[str, SourceSpan]
         return {}
     spans: dict[str, SourceSpan] = {}
     for key, offset in _object_keys(text, start):
-        spans.setdefault(key, _span_at(text, path, offset))
+        spans.setdefault(key, SourceSpan.at_offset(path, text, offset))
     return spans
 
 
@@ -346,8 +342,8 @@ def _duplicate_key_span(text: str, path: str, key: str) -> SourceSpan:
     except _DuplicateKeyError as dup:
         offsets = [offset for k, offset in _object_keys(text, dup.start or 0) if k == key]
         if len(offsets) > 1:
-            return _span_at(text, path, offsets[1])
-        return _span_at(text, path, dup.start or 0)
+            return SourceSpan.at_offset(path, text, offsets[1])
+        return SourceSpan.at_offset(path, text, dup.start or 0)
     return SourceSpan(path, 1, 1)
 
 
@@ -383,10 +379,10 @@ def _read_json(text: str, path: str, builder: SetBuilder) -> None:
             "the file must hold an object with 'measurements' (or a list)", SourceSpan(path, 1, 1)
         )
     top = SourceSpan(path, 1, 1)
-    start = len(text) - len(text.lstrip())
 
     def key_at(key: str, value: bool = True) -> SourceSpan:
-        return _key_span(text, path, start, key, value) or top
+        offset = _top_value(text, key, value)
+        return top if offset is None else SourceSpan.at_offset(path, text, offset)
 
     unknown = set(doc) - {"measurements", "known", "configurations", "images", "format", "model", "comment"}
     if unknown:
