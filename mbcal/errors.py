@@ -9,6 +9,7 @@ The command line prints ``render()`` and exits with status 2 — never a traceba
 from __future__ import annotations
 
 import difflib
+import re
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -99,9 +100,10 @@ class MbcalError(Exception):
     exit_code = 2
 
     def __init__(self, message: str, span: SourceSpan | None = None, hint: str | None = None):
-        self.message = message
+        # A name of 100,000 characters from a bad file is named, not echoed whole.
+        self.message = _long_words_cut(message)
         self.span = span
-        self.hint = hint
+        self.hint = None if hint is None else _long_words_cut(hint)
         super().__init__(str(self))
 
     def __str__(self) -> str:
@@ -229,20 +231,38 @@ class UnreachableError(KinematicsError):
 def undecodable_at(path: str, err: UnicodeDecodeError, first_line: int = 1) -> SourceSpan:
     """Where the first byte that is not UTF-8 lies in the text ``err`` failed on (its line counted
     from ``first_line``): the column in characters, as an editor shows it, not in bytes."""
-    data, start = err.object, err.start
-    line_start = data.rfind(b"\n", 0, start) + 1
-    column = len(data[line_start:start].decode("utf-8", errors="replace")) + 1
-    return SourceSpan(path, first_line + data.count(b"\n", 0, start), column)
+    # Lines end at LF, CR LF or a lone CR (old Mac files), as an editor counts them.
+    before = err.object[: err.start].replace(b"\r\n", b"\n").replace(b"\r", b"\n")
+    line_start = before.rfind(b"\n") + 1
+    column = len(before[line_start:].decode("utf-8", errors="replace")) + 1
+    return SourceSpan(path, first_line + before.count(b"\n"), column)
+
+
+def _cut(text: str, limit: int) -> str:
+    """``text``, cut in the middle when longer than ``limit`` characters, with its length."""
+    if len(text) <= limit:
+        return text
+    half = (limit - 1) // 2
+    return f"{text[:half]}…{text[-half:]} ({len(text):,} characters)"
 
 
 def shown(value: object, limit: int = 60) -> str:
     """``repr(value)`` for a message, cut in the middle when longer than ``limit`` characters: a
     bad value of 100,000 characters is named, not echoed in full."""
-    text = repr(value)
-    if len(text) <= limit:
+    return _cut(repr(value), limit)
+
+
+_LONGEST_WORD = 1024
+"""The most characters of one word (a run without white space: a name, a path) an error message
+repeats; a longer one is cut in the middle (paths run to a few hundred characters at most on
+real machines: they stay whole)."""
+_LONG_WORD = re.compile(r"\S{" + str(_LONGEST_WORD + 1) + ",}")
+
+
+def _long_words_cut(text: str) -> str:
+    if len(text) <= _LONGEST_WORD:
         return text
-    half = (limit - 1) // 2
-    return f"{text[:half]}…{text[-half:]} ({len(text):,} characters)"
+    return _LONG_WORD.sub(lambda m: _cut(m.group(0), 161), text)
 
 
 def suggest(name: str, candidates: Iterable[str], n: int = 3) -> str | None:

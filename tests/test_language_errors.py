@@ -255,3 +255,7 @@ def test_a_byte_order_mark_is_skipped_and_bytes_that_are_not_utf8_are_located(tm
     with pytest.raises(errors.IncludeError) as info:
         load_model(latin)
     assert ":2:9: not UTF-8 text (byte 25)" in str(info.value)
+    latin.write_bytes(b"param a = 1 m\r# caf\xe9\r")  # bare CR line ends: line 2 still
+    with pytest.raises(errors.IncludeError) as info:
+        load_model(latin)
+    assert ":2:6: not UTF-8 text (byte 20)" in str(info.value)

@@ -295,6 +295,11 @@ def test_csv_files_are_read_line_by_line_whatever_their_line_ends(room, tmp_path
     with pytest.raises(MeasurementFileError, match=r"latin1.json:2:20: not UTF-8 text \(byte 23\)") as info:
         read_measurements(tmp_path / "latin1.json", room)
     assert (info.value.span.line, info.value.span.column) == (2, 20)  # it said 1:1; µ is one character
+    # bare CR line ends: the file comes as one piece; the bad byte was placed on line 1
+    mac = "\r".join(rows).encode() + b"\rm3,image_point,eyes.left,lever.tip,5,6 \xb5m\r"
+    (tmp_path / "latin1-mac.csv").write_bytes(mac)
+    with pytest.raises(MeasurementFileError, match=r"latin1-mac.csv:4:40: not UTF-8 text \(byte 40 of the line\)"):
+        read_measurements(tmp_path / "latin1-mac.csv", room)
 
 
 def test_a_sets_columns_follow_its_measurements_and_give_the_problems_values(tmp_path, room):
@@ -829,6 +834,26 @@ def test_a_long_bad_value_is_named_not_echoed_in_full(tmp_path, lever, monkeypat
     message = str(info.value)
     assert "value 'u': expected a number, got 'xxx" in message and "(100,002 characters)" in message
     assert len(message) < 200, len(message)
+
+
+def test_a_long_name_is_cut_in_the_message_not_echoed_whole(tmp_path, lever, monkeypatch):
+    """Values were cut (errors.shown) but names were not: an unknown key or camera of 100,000
+    characters filled the terminal."""
+    monkeypatch.chdir(tmp_path)
+    long = "k" * 100_000
+    write(tmp_path, "m.json", json.dumps({"measurements": [{"kind": "image_point", long: 1}]}))
+    with pytest.raises(MeasurementFileError) as info:
+        read_measurements("m.json", lever)
+    message = str(info.value)
+    assert "unknown key 'kkk" in message and "(100,002 characters)" in message, message[:300]
+    assert len(message) < 400 and len(info.value.render()) < 800
+    lever_json(tmp_path, camera="c" * 100_000)
+    with pytest.raises(MeasurementFileError) as info:
+        read_measurements("m.json", lever)
+    assert len(str(info.value)) < 600 and "characters)" in str(info.value), str(info.value)[:300]
+    # a path is a word too: a long one (a file name of 255 characters in a deep folder) stays whole
+    path = str(tmp_path / ("d" * 200) / ("f" * 255))
+    assert str(MeasurementFileError(f"cannot read {path}")) == f"cannot read {path}"
 
 
 @pytest.mark.parametrize(

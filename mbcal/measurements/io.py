@@ -115,8 +115,10 @@ class _Lines:
         try:
             line = raw.decode("utf-8")
         except UnicodeDecodeError as err:
+            # the byte within its line: a file with bare CR line ends comes as one piece
+            line_start = max(raw.rfind(b"\r", 0, err.start), raw.rfind(b"\n", 0, err.start)) + 1
             raise MeasurementFileError(
-                f"not UTF-8 text (byte {err.start + 1} of the line)",
+                f"not UTF-8 text (byte {err.start - line_start + 1} of the line)",
                 undecodable_at(self.path, err, self.number),
             ) from None
         if "\r" in line.rstrip("\r\n"):
