@@ -134,7 +134,10 @@ def cache_dir() -> Path | None:
 # interrupted atomic write (mbcal.outputs.atomic_write: ".NAME.XXXX.part").  `mbcal cache --clear`
 # removes files with these names only: MBCAL_CACHE_DIR may name a folder that holds other files.
 CACHE_PARTS: dict[str, tuple[str, str]] = {
-    "exports": ("traced programs (jax.export): a later process does not trace them", r"[0-9a-f]{64}\.jaxexport"),
+    "exports": (
+        "traced programs (jax.export) and their inputs' recipes: a later process does not trace them",
+        r"[0-9a-f]{64}\.(?:jaxexport|recipe\.json)",
+    ),
     # JAX names its entries "<module name>-<sha256>-cache", the module name with [^\w.-] replaced
     "jax": ("compiled programs (JAX's compilation cache)", r"[\w.\-]+-[0-9a-f]{64}-(?:cache|atime)"),
     "meshes": ("triangles of mesh files, keyed by their bytes", r"[0-9a-f]{64}\.npz"),
@@ -264,6 +267,8 @@ def _entry_of(part: str, name: str) -> str:
     eviction is on, ``<key>-atime``; an interrupted write's leftover is an entry of its own."""
     if part == "jax" and (name.endswith("-cache") or name.endswith("-atime")):
         return name.rsplit("-", 1)[0]
+    if part == "exports" and name.endswith(".recipe.json"):  # an exported program's inputs: one entry with it
+        return name[: -len(".recipe.json")] + ".jaxexport"
     return name
 
 
@@ -390,6 +395,12 @@ class Hasher:
             self._h.update(f"<unreadable {path}>".encode())
         return self
 
+    def copy(self) -> Hasher:
+        """A hasher that goes on from what this one has taken (this one is unchanged)."""
+        other = Hasher()
+        other._h = self._h.copy()
+        return other
+
     def hexdigest(self) -> str:
         return self._h.hexdigest()
 
@@ -404,6 +415,13 @@ def _export_module() -> Any:
     except ImportError:  # pragma: no cover
         return None
     return export
+
+
+def recipe_path(key: str) -> Path | None:
+    """Where the persistent cache keeps the recipe of an exported program's inputs
+    (:mod:`mbcal.staging`), None without a cache: beside the program, trimmed with it."""
+    folder = cache_dir()
+    return None if folder is None else folder / "exports" / f"{key}.recipe.json"
 
 
 def exported(key: str, jitted: Callable, *example: Any, keep: bool = True) -> Callable:

@@ -45,6 +45,7 @@ import numpy as np
 from mbcal._jax import as_argument, jax, jit, jnp
 from mbcal.cache import Hasher, exported
 from mbcal.errors import SolverError
+from mbcal.staging import prepare
 
 Array = Any
 
@@ -697,6 +698,30 @@ class _Identity:
         return isinstance(other, _Identity) and other.obj is self.obj
 
 
+class _StagedLocal:
+    """A local parameterisation whose residual is a staged program (:mod:`mbcal.staging`): it takes
+    the recipe's inputs in place of the residual's arguments."""
+
+    def __init__(self, local: LocalParameterisation, program: Callable):
+        self._local, self._program = local, program
+
+    def residual(self, x: Array, d: Array, *inputs: Array) -> Array:
+        return self._program(x, d, *inputs)
+
+    def plus(self, x: Array, d: Array) -> Array:
+        return self._local.plus(x, d)
+
+    def represent(self, x: Array, reference: Array) -> Array:
+        return self._local.represent(x, reference)
+
+
+@functools.lru_cache(maxsize=8)
+def _staged_local(local: _Identity, program: Callable) -> _StagedLocal:
+    """One object per parameterisation and program: the solver's programs compiled for it are found
+    again (they are cached per identity)."""
+    return _StagedLocal(local.obj, program)
+
+
 # A few programs only: each compiled solver holds a few hundred memory maps of XLA's code (338 for
 # the room's), and a long process (the test suite) that kept 64 alive came near the kernel's limit
 # of 65,530 maps, where XLA:CPU crashes (issue 16).  Problems of one structure share one entry.
@@ -780,16 +805,36 @@ def least_squares(
     args = tuple(as_argument(a) for a in args)  # not jnp.asarray: it compiles a program per shape
     local = local if config.manifold else None
     limits, x0 = hard_limits(bounds, x0)
-    program = _compiled(fun, config, size, limits is not None, local if local is None else _Identity(local))
-    example: tuple[Any, ...] = (x0, args)
-    if limits is not None:
-        example += limits
+    key = None
     if cache_key is not None:
         key = Hasher().add(cache_key, repr(config), size, x0.shape, [(a.shape, str(a.dtype)) for a in args])
         if limits is not None:
             key.add("bounded")
         if local is not None:
             key.add("local", type(local).__module__, type(local).__qualname__)
+    if args and (local is None or size is not None):
+        # What depends on the known arguments only is computed before the program (mbcal.staging).
+        # (With local coordinates the solver traces local.residual, and fun only for the size.)
+        unknowns = (x0[0],) if local is None else (x0[0], np.zeros(x0.shape[1]))
+        staged = prepare(
+            fun if local is None else local.residual,
+            unknowns,
+            args,
+            None if key is None else key.copy().add("staged").hexdigest(),
+        )
+        if staged is not None:
+            program_fun, args = staged
+            if local is None:
+                fun = program_fun
+            else:
+                local = _staged_local(_Identity(local), program_fun)
+            if key is not None:
+                key.add("staged")
+    program = _compiled(fun, config, size, limits is not None, local if local is None else _Identity(local))
+    example: tuple[Any, ...] = (x0, args)
+    if limits is not None:
+        example += limits
+    if key is not None:
         program = exported(key.hexdigest(), program, *example)
     out = program(*example)
     x, cost, status, it = (np.asarray(v) for v in out[:4])

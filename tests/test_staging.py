@@ -1,0 +1,177 @@
+"""mbcal.staging: the part of a residual computed from its known inputs alone runs in NumPy before
+the program; the rest is the program.  Same residual, same Jacobian, the recipe kept in the cache."""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mbcal._jax import jax, jnp
+from mbcal.solver import SolverConfig, _compiled, least_squares
+from mbcal.staging import Recipe, prepare, split
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def chain(x, readings, y):
+    """A two-joint planar chain per configuration: the readings (C, 2) known, x = the offsets and a
+    length; the first joint's frame depends on the readings only (the part to move out)."""
+    c0, s0 = jnp.cos(readings[:, 0]), jnp.sin(readings[:, 0])
+    base = jnp.stack([c0, s0], axis=1) * 0.5  # known only
+    twice = jnp.where(readings[:, 1] > 0, readings[:, 1], -readings[:, 1])  # a nested jit (where), known only
+    steps = jnp.arange(readings.shape[0]).astype(readings.dtype)  # iota and a convert
+    a = readings[:, 0] + readings[:, 1] + x[0]
+    tip = base + x[1] * jnp.stack([jnp.cos(a), jnp.sin(a)], axis=1) + 1e-3 * (twice + steps)[:, None]
+    return (tip.reshape(-1) - y) / 0.01
+
+
+@pytest.fixture
+def data():
+    rng = np.random.default_rng(3)
+    readings = rng.uniform(-1.5, 1.5, size=(12, 2))
+    truth = np.array([0.05, 0.8])
+    y = np.asarray(chain(truth, readings, np.zeros(24))) * 0.01 + rng.normal(0, 0.001, 24)
+    return readings, y, truth
+
+
+def test_the_program_and_recipe_give_the_residual_and_its_jacobian(data):
+    readings, y, _ = data
+    args = (readings, y)
+    made = split(chain, (np.zeros(2),), args)
+    assert made.moved > 10 and made.kept > 0, (made.moved, made.kept)
+    inputs = made.recipe.inputs(args)
+    for x in ([0.0, 1.0], [0.3, 0.7], [-1.0, 2.5]):
+        x = np.asarray(x)
+        np.testing.assert_allclose(made.program(x, *inputs), chain(x, *args), rtol=1e-14, atol=1e-12)
+        J = np.asarray(jax.jacfwd(made.program)(x, *inputs))
+        np.testing.assert_allclose(J, jax.jacfwd(chain)(x, *args), rtol=1e-13, atol=1e-10)
+        # and against finite differences of the original residual
+        h = 1e-6
+        fd = np.stack(
+            [(np.asarray(chain(x + h * e, *args)) - np.asarray(chain(x - h * e, *args))) / (2 * h) for e in np.eye(2)],
+            1,
+        )
+        np.testing.assert_allclose(J, fd, rtol=1e-6, atol=1e-5)
+    # the inputs of the last arguments are kept; arguments changed in place are seen as new
+    assert made.recipe.inputs(args)[0] is made.recipe.inputs(args)[0]
+    readings[0, 0] += 0.25
+    np.testing.assert_allclose(
+        made.program(np.ones(2), *made.recipe.inputs(args)), chain(np.ones(2), *args), rtol=1e-14
+    )
+    # the program does not compute what was moved: no sine or cosine of the readings alone is left
+    traced = jax.make_jaxpr(made.program)(np.zeros(2), *inputs).jaxpr
+    assert sum(e.primitive.name in ("sin", "cos") for e in traced.eqns) == 2  # those of x[0] + readings
+
+
+def test_what_numpy_cannot_compute_here_stays_in_the_program():
+    def fun(x, a, k):
+        inner = a @ a.T  # a dot product: stays
+        halves = k // 2  # integer division: stays
+        return x[0] * jnp.sum(inner, axis=1) + halves.astype(x.dtype) + jnp.sin(a[:, 0])  # the sine moves
+
+    a = np.arange(6.0).reshape(3, 2)
+    k = np.array([3, -3, 7])
+    made = split(fun, (np.ones(1),), (a, k))
+    names = [step[0] for step in made.recipe.steps]
+    assert "sin" in names and "dot_general" not in names and "div" not in names
+    inputs = made.recipe.inputs((a, k))
+    np.testing.assert_array_equal(made.program(np.array([2.0]), *inputs), fun(np.array([2.0]), a, k))
+
+
+def test_a_recipe_reads_back_from_json_bit_for_bit(data):
+    readings, y, _ = data
+
+    def fun(x, r, y):
+        odd = jnp.where(r[:, 0] > 0, jnp.inf, jnp.nan)  # non-finite literals and results
+        return jnp.concatenate([x[0] * jnp.cos(r[:, 0]) - y[:12], jnp.nan_to_num(odd) * 0.0 + x[1]])
+
+    made = split(fun, (np.zeros(2),), (readings, y))
+    text = made.recipe.to_json()
+    json.loads(text)  # plain JSON text (NaN and inf as text in it)
+    again = Recipe.from_json(text)
+    for ours, theirs in zip(made.recipe.inputs((readings, y)), again.inputs((readings, y))):
+        np.testing.assert_array_equal(ours, theirs)
+    with pytest.raises(ValueError):
+        Recipe.from_json(json.dumps({"format": 99}))
+    bad = json.loads(text)
+    bad["steps"][0][0] = "system"
+    with pytest.raises(ValueError, match="unknown operation"):
+        Recipe.from_json(json.dumps(bad))
+
+
+def test_least_squares_staged_gives_the_unstaged_solution(data):
+    readings, y, truth = data
+    starts = np.array([[0.0, 1.0], [0.2, 0.5], [-0.3, 1.2]])
+    staged = least_squares(chain, starts, args=(readings, y), size=24)
+    whole = _compiled(chain, SolverConfig(), 24)(starts, (readings, y))
+    np.testing.assert_allclose(staged.x, np.asarray(whole[0]), rtol=1e-10, atol=1e-12)
+    np.testing.assert_array_equal(staged.status, np.asarray(whole[2]))
+    np.testing.assert_allclose(staged.x_best, truth, atol=5e-3)
+    program, _ = prepare(chain, (starts[0],), (readings, y))
+    assert program is prepare(chain, (starts[0],), (readings * 2, y))[0]  # one program per function and shapes
+
+
+CHILD = textwrap.dedent(
+    """
+    import json, sys
+    import numpy as np
+    sys.path.insert(0, {tests!r})
+    from test_staging import chain
+    from mbcal import staging
+    from mbcal.solver import least_squares
+    rng = np.random.default_rng(3)
+    readings = rng.uniform(-1.5, 1.5, size=(12, 2))
+    y = np.asarray(chain(np.array([0.05, 0.8]), readings, np.zeros(24))) * 0.01
+    out = least_squares(chain, np.array([[0.0, 1.0], [0.2, 0.5]]), args=(readings, y), size=24, cache_key="chain-test")
+    print(json.dumps({{"x": out.x.tolist(), "splits": staging._split_for.cache_info().misses}}))
+    """
+)
+
+
+@pytest.mark.slow
+def test_a_later_process_reads_the_recipe_and_does_not_trace(tmp_path):
+    env = dict(os.environ, MBCAL_CACHE_DIR=str(tmp_path / "cache"))
+    env.pop("MBCAL_CACHE", None)
+    code = CHILD.format(tests=str(ROOT / "tests"))
+
+    def run():
+        proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, cwd=ROOT)
+        assert proc.returncode == 0, proc.stderr
+        return json.loads(proc.stdout.strip().splitlines()[-1])
+
+    first, second = run(), run()
+    exports = sorted(p.name for p in (tmp_path / "cache" / "exports").iterdir())
+    assert any(n.endswith(".recipe.json") for n in exports) and any(n.endswith(".jaxexport") for n in exports)
+    assert first["splits"] == 1 and second["splits"] == 0  # the second took the recipe and the program
+    assert first["x"] == second["x"]  # bit for bit
+
+
+def test_a_residual_that_cannot_be_a_cache_key_is_not_split(data):
+    readings, y, _ = data
+
+    class Residual:
+        __hash__ = None  # type: ignore[assignment]  # an object with __eq__ and no hash
+
+        def __eq__(self, other):
+            return isinstance(other, Residual)
+
+        def __call__(self, x, r, y):
+            return chain(x, r, y)
+
+    assert prepare(Residual(), (np.zeros(2),), (readings, y)) is None  # not split: no TypeError here
+
+
+def test_a_residual_whose_trace_fails_is_left_whole_for_the_solver_to_report(data):
+    readings, y, _ = data
+
+    def broken(x, r, y):
+        return jnp.concatenate([x, r])  # ranks differ: JAX refuses it when traced
+
+    assert prepare(broken, (np.zeros(2),), (readings, y)) is None
+    with pytest.raises(TypeError, match="concatenate"):
+        least_squares(broken, np.array([[0.0, 1.0]]), args=(readings, y), size=24)
