@@ -395,10 +395,15 @@ class Problem:
     def _hash(self) -> str:
         h = Hasher().add(code_fingerprint(), self.size, self.params.names, self.params._source)
         h.add(self.model.text_digest)  # models from text: the text itself (files are hashed below)
-        for path in self.model.files:
-            h.add(str(path)).add_file(path)
-        for path in self.model.data_files:  # meshes and point files: their contents are constants of the programs
-            h.add(str(path)).add_file(path)
+        # The files as they were read (a file saved since is not what the model holds); one the
+        # model has no digest of (a model built otherwise) as it is now.
+        digests = dict(self.model.file_digests)
+        for path in dict.fromkeys([*self.model.files, *self.model.data_files]):  # with meshes and point files
+            h.add(str(path))
+            if path in digests:
+                h.add(digests[path])
+            else:
+                h.add_file(path)
         for g in self.groups:
             b = g.batch
             if not type(g.model).__module__.startswith("mbcal."):  # a plugin's code is not mbcal's

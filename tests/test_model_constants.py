@@ -85,7 +85,18 @@ def test_point_files_and_plugin_code_are_part_of_the_fingerprint(tmp_path, monke
 
     first = fingerprint()
     (tmp_path / "c.txt").write_text("0.5 0\n")
-    assert fingerprint() != first
+    second = fingerprint()
+    assert second != first
+    # a file saved after the model was read: the problem is keyed by what the model holds (the
+    # edited file's key held the program of the old points)
+    model = mbcal.load_model(tmp_path / "m.mdl")
+    plan = mbcal.measurements_from_records(
+        [{"id": "p", "kind": "image_point", "camera": "eye", "point": "f.t.p0", "sigma": 1.0}], model
+    )
+    (tmp_path / "c.txt").write_text("0.75 0\n")
+    (tmp_path / "m.mdl").write_text(text.replace("[-1 m, 1 m]", "[-2 m, 2 m]"))
+    assert Problem(model, plan, ["a"]).fingerprint() == second
+    assert fingerprint() not in (first, second)
 
     source = tmp_path / "zplugin.py"
     source.write_text(

@@ -23,6 +23,18 @@ def _too_deep(path: str) -> MdlError:
     )
 
 
+def _read_digests(model: Model) -> Model:
+    """The model with the digests of the files it was read from, as they are now, at the end of
+    reading it (:attr:`Model.file_digests`)."""
+    digests = []
+    for name in dict.fromkeys([*model.files, *model.data_files]):
+        try:
+            digests.append((name, hashlib.sha256(Path(name).read_bytes()).hexdigest()))
+        except OSError:
+            digests.append((name, ""))
+    return dataclasses.replace(model, file_digests=tuple(digests))
+
+
 def load_model(path: str | os.PathLike[str]) -> Model:
     """Read, parse and check a model file (``.mdl``, or ``.urdf`` for robot descriptions).
 
@@ -37,9 +49,10 @@ def load_model(path: str | os.PathLike[str]) -> Model:
     try:
         statements = parse_file(path)
         with deep_recursion():
-            return check(statements, str(path))
+            model = check(statements, str(path))
     except RecursionError:
         raise _too_deep(str(path)) from None
+    return _read_digests(model)
 
 
 def load_model_text(text: str, path: str = "<string>") -> Model:
@@ -56,7 +69,7 @@ def load_model_text(text: str, path: str = "<string>") -> Model:
     except RecursionError:
         raise _too_deep(path) from None
     # The text is not in a file the cache could hash: its digest stands for it.
-    return dataclasses.replace(model, text_digest=hashlib.sha256(text.encode("utf-8")).hexdigest())
+    return _read_digests(dataclasses.replace(model, text_digest=hashlib.sha256(text.encode("utf-8")).hexdigest()))
 
 
 def load_urdf(path: str | os.PathLike[str]) -> Model:
@@ -73,4 +86,4 @@ def load_urdf(path: str | os.PathLike[str]) -> Model:
     path = Path(path)
     text = urdf_to_mdl(path)
     model = load_model_text(text, str(path.with_name(path.name + ".mdl")))
-    return dataclasses.replace(model, path=str(path), files=(str(path), *model.files[1:]))
+    return _read_digests(dataclasses.replace(model, path=str(path), files=(str(path), *model.files[1:])))

@@ -229,6 +229,11 @@ class Model:
     # SHA-256 of the text a model was checked from when it was not read from a file
     # (load_model_text): the text is part of the model's identity for the compiled-program cache.
     text_digest: str = ""
+    # SHA-256 of each of :attr:`files` and :attr:`data_files` as it was when the model was read
+    # (path, digest; "" unreadable): the compiled-program cache keys on these, not on the files as
+    # they are when a problem is built later (one saved in between keyed the program of the old
+    # content under the new one's name).
+    file_digests: tuple[tuple[str, str], ...] = ()
     _index: dict[str, dict[str, int]] = field(default_factory=dict, repr=False)
     _suffixes: dict[str, dict[str, list[str]]] = field(default_factory=dict, repr=False)
 
