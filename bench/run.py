@@ -198,7 +198,8 @@ elif {split}:
     # as least_squares runs it: the known part split off first (mbcal.staging), timed with the trace
     from mbcal.staging import prepare
     a = time.perf_counter()
-    fun, args = prepare(problem.residual_function, (starts[0],), args) or (problem.residual_function, args)
+    prepared = prepare(problem.residual_function, (starts[0],), args)
+    fun, args = (prepared.program, prepared.inputs) if prepared else (problem.residual_function, args)
     jitted = _compiled(fun, SolverConfig(), problem.n_residuals)
     lowered = jitted.lower(starts, args)
     b = time.perf_counter(); compiled = lowered.compile()

@@ -823,13 +823,13 @@ def least_squares(
             None if key is None else key.copy().add("staged").hexdigest(),
         )
         if staged is not None:
-            program_fun, args = staged
+            program_fun, args, recipe = staged
             if local is None:
                 fun = program_fun
             else:
                 local = _staged_local(_Identity(local), program_fun)
             if key is not None:
-                key.add("staged")
+                key.add("staged", recipe)  # the exported program is the one made for this recipe
     program = _compiled(fun, config, size, limits is not None, local if local is None else _Identity(local))
     example: tuple[Any, ...] = (x0, args)
     if limits is not None:

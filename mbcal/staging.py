@@ -24,10 +24,13 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import hashlib
 import json
+import threading
+from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from jax.extend import core as jcore
@@ -36,7 +39,7 @@ from mbcal._jax import jax
 from mbcal.cache import recipe_path
 from mbcal.outputs import atomic_write
 
-__all__ = ["NUMPY", "Recipe", "Split", "prepare", "split"]
+__all__ = ["NUMPY", "Prepared", "Recipe", "Split", "prepare", "split"]
 
 RECIPE_FORMAT = 1
 # A constant read by the recipe is written into the cache's JSON: larger ones stay in the program.
@@ -145,7 +148,9 @@ def _movable(eqn: Any) -> bool:
     its own operations)."""
     name = eqn.primitive.name
     if name in ("jit", "pjit"):
-        return not eqn.effects and all(_movable(e) for e in eqn.params["jaxpr"].jaxpr.eqns)
+        inner = eqn.params["jaxpr"]
+        small = all(np.size(c) <= _LARGEST_CONSTANT for c in inner.consts)
+        return small and not eqn.effects and all(_movable(e) for e in inner.jaxpr.eqns)
     if name not in NUMPY or eqn.effects:
         return False
     params = dict(eqn.params)
@@ -158,9 +163,15 @@ def _movable(eqn: Any) -> bool:
     if not all(_plain(v) for v in params.values()):
         return False
     avals = [v.aval for v in (*eqn.invars, *eqn.outvars)]
-    if name in _FLOAT_ONLY and not all(np.issubdtype(a.dtype, np.floating) for a in avals):
+    if not all(getattr(a, "shape", None) is not None and hasattr(a, "dtype") for a in avals):
         return False
-    return all(getattr(a, "shape", None) is not None for a in avals)
+    kinds = {np.dtype(a.dtype).kind for a in avals}
+    if "c" in kinds or not kinds <= set("biuf"):  # complex numbers (JSON has none), and other kinds
+        return False
+    if name in _FLOAT_ONLY and kinds != {"f"}:
+        return False
+    # float → integer: XLA saturates (NaN → 0), NumPy wraps or gives INT_MIN
+    return not (name == "convert_element_type" and np.dtype(params["new_dtype"]).kind in "iu" and "f" in kinds)
 
 
 # ---- the recipe: the moved operations, flat, as data ---------------------------------------------
@@ -240,7 +251,13 @@ class Recipe:
                 if result.shape != shape:
                     raise ValueError(f"{name} gave shape {result.shape}, not {shape}")
                 values[index] = result
-            return tuple(np.ascontiguousarray(read(r)) for r in self.outputs)
+            # copies (C order, 0-d kept): an input kept by the memo never aliases a caller's array
+            return tuple(np.array(read(r), order="C") for r in self.outputs)
+
+    @functools.cached_property
+    def digest(self) -> str:
+        """SHA-256 of :meth:`to_json`: the exported program made for this recipe is keyed by it."""
+        return hashlib.sha256(self.to_json().encode("utf-8")).hexdigest()
 
     def to_json(self) -> str:
         constants = [{"dtype": c.dtype.name, "shape": list(c.shape), "data": _encode_flat(c)} for c in self.constants]
@@ -261,7 +278,7 @@ class Recipe:
     @staticmethod
     def from_json(text: str) -> Recipe:
         doc = json.loads(text)
-        if doc.get("format") != RECIPE_FORMAT:
+        if not isinstance(doc, dict) or doc.get("format") != RECIPE_FORMAT:
             raise ValueError("another recipe format")
         constants = tuple(
             np.asarray([float(v) if isinstance(v, str) else v for v in c["data"]], dtype=c["dtype"]).reshape(c["shape"])
@@ -422,12 +439,20 @@ def split(fun: Callable[..., Any], unknowns: Sequence[Any], args: Sequence[Any])
 
 
 def signature(values: Sequence[Any]) -> tuple:
-    """Shapes and dtypes: what a split depends on besides the function."""
-    return tuple((tuple(np.shape(v)), np.dtype(getattr(v, "dtype", None) or np.asarray(v).dtype).name) for v in values)
+    """Shapes, dtypes and weak types (a JAX array's: it changes type promotion): what a split
+    depends on besides the function."""
+    return tuple(
+        (
+            tuple(np.shape(v)),
+            np.dtype(getattr(v, "dtype", None) or np.asarray(v).dtype).name,
+            bool(getattr(v, "weak_type", False)),
+        )
+        for v in values
+    )
 
 
 def _abstract(sig: tuple) -> list[Any]:
-    return [jax.ShapeDtypeStruct(shape, np.dtype(dtype)) for shape, dtype in sig]
+    return [jax.ShapeDtypeStruct(shape, np.dtype(dtype), weak_type=weak) for shape, dtype, weak in sig]
 
 
 # A few functions only (as mbcal.solver._compiled): a split holds its function's trace.
@@ -448,10 +473,36 @@ def _program_for(fun: Callable[..., Any], unknowns: tuple, args: tuple) -> Calla
     return program
 
 
-def prepare(fun: Callable[..., Any], unknowns: Sequence[Any], args: Sequence[Any], key: str | None = None):
-    """``(program, inputs)`` with ``program(*unknowns, *inputs) == fun(*unknowns, *args)``, or None
-    when the split moves nothing (the caller keeps ``fun`` and ``args``).  ``key``: the persistent
-    cache's key of the program to be exported; its recipe is read from there, or written there."""
+class Prepared(NamedTuple):
+    """What :func:`prepare` gives: call ``program(*unknowns, *inputs)``; ``digest`` identifies the
+    recipe (an exported program of ``program`` is keyed by it, so the two never mismatch)."""
+
+    program: Callable[..., Any]
+    inputs: tuple[np.ndarray, ...]
+    digest: str
+
+
+# Recipes read or made in this process, by cache key (a few: as the solver's programs): a warm
+# solve neither reads nor parses its recipe again.
+_RECIPES: OrderedDict[str, Recipe] = OrderedDict()
+_RECIPES_LOCK = threading.Lock()
+
+
+def _remember(key: str, recipe: Recipe) -> None:
+    with _RECIPES_LOCK:
+        _RECIPES[key] = recipe
+        _RECIPES.move_to_end(key)
+        while len(_RECIPES) > 8:
+            _RECIPES.popitem(last=False)
+
+
+def prepare(
+    fun: Callable[..., Any], unknowns: Sequence[Any], args: Sequence[Any], key: str | None = None
+) -> Prepared | None:
+    """The residual split (:func:`split`) with its inputs for ``args``: ``program(*unknowns,
+    *inputs) == fun(*unknowns, *args)``; None when ``fun`` is not split (it cannot be a cache key,
+    or tracing it fails: the solver traces it whole and meets the error there).  ``key``: where the
+    persistent cache keeps the recipe, read from there or written there."""
     try:
         hash(fun)
     except TypeError:  # the splits are kept per function: one that cannot be a key is not split
@@ -459,11 +510,14 @@ def prepare(fun: Callable[..., Any], unknowns: Sequence[Any], args: Sequence[Any
     sig_u, sig_a = signature(unknowns), signature(args)
     path = None if key is None else recipe_path(key)
     recipe = None
-    if path is not None and path.is_file():
+    if key is not None:
+        with _RECIPES_LOCK:
+            recipe = _RECIPES.get(key)
+    if recipe is None and path is not None and path.is_file():
         try:
             recipe = Recipe.from_json(path.read_text(encoding="utf-8"))
-        except (OSError, ValueError, KeyError, TypeError, IndexError):
-            recipe = None  # truncated or foreign: split again and write it anew
+        except Exception:  # noqa: BLE001 — truncated, foreign or of another version: split again, write anew
+            recipe = None
     if recipe is None:
         try:
             made = _split_for(fun, sig_u, sig_a)
@@ -471,11 +525,14 @@ def prepare(fun: Callable[..., Any], unknowns: Sequence[Any], args: Sequence[Any
             return None
         recipe = made.recipe
         if path is not None:
-            with contextlib.suppress(OSError):  # a read-only cache: still correct, only slower next time
+            with contextlib.suppress(Exception):  # a read-only cache: still correct, only slower next time
                 path.parent.mkdir(parents=True, exist_ok=True)
                 atomic_write(path, recipe.to_json().encode("utf-8"))
     try:
         inputs = recipe.inputs(args)
-    except (ValueError, KeyError, IndexError, TypeError):
-        return None  # a recipe that does not fit these arguments: the whole program computes it
-    return _program_for(fun, sig_u, sig_a), inputs
+        digest = recipe.digest
+    except Exception:  # noqa: BLE001 — a recipe that does not fit these arguments: the program computes it all
+        return None
+    if key is not None:
+        _remember(key, recipe)
+    return Prepared(_program_for(fun, sig_u, sig_a), inputs, digest)

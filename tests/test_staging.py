@@ -94,6 +94,7 @@ def test_a_recipe_reads_back_from_json_bit_for_bit(data):
     text = made.recipe.to_json()
     json.loads(text)  # plain JSON text (NaN and inf as text in it)
     again = Recipe.from_json(text)
+    assert again.to_json() == text and again.digest == made.recipe.digest  # the exported program's key
     for ours, theirs in zip(made.recipe.inputs((readings, y)), again.inputs((readings, y))):
         np.testing.assert_array_equal(ours, theirs)
     with pytest.raises(ValueError):
@@ -112,8 +113,8 @@ def test_least_squares_staged_gives_the_unstaged_solution(data):
     np.testing.assert_allclose(staged.x, np.asarray(whole[0]), rtol=1e-10, atol=1e-12)
     np.testing.assert_array_equal(staged.status, np.asarray(whole[2]))
     np.testing.assert_allclose(staged.x_best, truth, atol=5e-3)
-    program, _ = prepare(chain, (starts[0],), (readings, y))
-    assert program is prepare(chain, (starts[0],), (readings * 2, y))[0]  # one program per function and shapes
+    program = prepare(chain, (starts[0],), (readings, y)).program
+    assert program is prepare(chain, (starts[0],), (readings * 2, y)).program  # one program per function and shapes
 
 
 CHILD = textwrap.dedent(
@@ -175,3 +176,75 @@ def test_a_residual_whose_trace_fails_is_left_whole_for_the_solver_to_report(dat
     assert prepare(broken, (np.zeros(2),), (readings, y)) is None
     with pytest.raises(TypeError, match="concatenate"):
         least_squares(broken, np.array([[0.0, 1.0]]), args=(readings, y), size=24)
+
+
+def _whole(fun, x, *args):
+    return np.asarray(jax.jit(fun)(x, *args))
+
+
+def test_from_a_review_scalars_integer_casts_complex_numbers_and_weak_types(tmp_path, monkeypatch):
+    """Defects found by a review of the first version: each now gives the unstaged residual."""
+    monkeypatch.setenv("MBCAL_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.delenv("MBCAL_CACHE", raising=False)
+
+    # a scalar argument and a sum over an argument came back as shape (1,)
+    def scaled(x, y, s):
+        return jnp.stack([x[0] * s, x[1], x[2] * jnp.sum(y)]) - y
+
+    out = least_squares(scaled, np.zeros(3), args=(np.ones(3), 2.0), size=3, cache_key="scalar-test")
+    np.testing.assert_allclose(out.x_best, [0.5, 1.0, 1.0 / 3.0], atol=1e-9)
+
+    # float → integer: XLA saturates (NaN → 0); NumPy does not, so it stays in the program
+    def cast(x, k):
+        return x[0] + jax.lax.convert_element_type(k, jnp.int32).astype(x.dtype)
+
+    k = np.array([np.nan, np.inf, 1e20, 3e9, -1.5])
+    made = split(cast, (np.zeros(1),), (k,))
+    np.testing.assert_array_equal(made.program(np.zeros(1), *made.recipe.inputs((k,))), _whole(cast, np.zeros(1), k))
+
+    # a complex constant: JSON has no complex numbers; it stays in the program, nothing fails
+    def rotated(x, a, y):
+        return jnp.abs(a * (1 + 2j)) * x[0] - y
+
+    a, y = np.array([1.0, 2.0, 3.0]), np.array([2.0, 4.0, 6.0])
+    out = least_squares(rotated, np.zeros(1), args=(a, y), size=3, cache_key="complex-test")
+    np.testing.assert_allclose(out.x_best, [2.0 / np.sqrt(5.0)], rtol=1e-9)
+
+    # a weak-typed JAX scalar keeps float32 arithmetic float32, as unstaged
+    def mixed(x, a, w):
+        return (a * w).astype(x.dtype) * x[0]
+
+    a32, w = np.array([0.1, 0.2, 0.3], dtype=np.float32), jnp.asarray(0.1)
+    prepared = prepare(mixed, (np.ones(1),), (a32, w))
+    np.testing.assert_array_equal(prepared.program(np.ones(1), *prepared.inputs), _whole(mixed, np.ones(1), a32, w))
+
+
+def test_the_kept_inputs_never_alias_a_callers_array():
+    def fun(x, d):
+        return x[0] * d.reshape(-1) + jnp.sin(d[0, 0])
+
+    data0 = np.arange(6.0).reshape(2, 3) / 10
+    made = split(fun, (np.ones(1),), (data0,))
+    buf = data0.copy()
+    made.recipe.inputs((buf,))
+    buf[:] = 5.0  # the caller reuses its buffer
+    np.testing.assert_allclose(made.program(np.ones(1), *made.recipe.inputs((data0,))), _whole(fun, np.ones(1), data0))
+
+
+def test_a_foreign_recipe_file_is_replaced_not_trusted(tmp_path, monkeypatch, data):
+    from mbcal import staging
+
+    monkeypatch.setenv("MBCAL_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.delenv("MBCAL_CACHE", raising=False)
+    readings, y, truth = data
+    key = "0" * 64
+    path = staging.recipe_path(key)
+    path.parent.mkdir(parents=True)
+    for foreign in ("[]", "{", '{"format": 1}', "null"):
+        path.write_text(foreign)
+        staging._RECIPES.clear()
+        prepared = staging.prepare(chain, (np.zeros(2),), (readings, y), key)
+        np.testing.assert_allclose(
+            prepared.program(truth, *prepared.inputs), _whole(chain, truth, readings, y), rtol=1e-13
+        )
+        assert Recipe.from_json(path.read_text()).digest == prepared.digest  # written anew
