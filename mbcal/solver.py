@@ -777,6 +777,8 @@ def least_squares(
         Starting point(s); each row is one restart, all run in one vmapped, compiled call.
     args : tuple of arrays
         Extra inputs of ``fun`` (measurements, known values) — changing them does not recompile.
+        What ``fun`` computes from them alone is computed in NumPy before the compiled program
+        runs (:mod:`mbcal.staging`; the same residual to rounding).
     config : SolverConfig, optional
     size : int, optional
         The number of residuals, when known (saves one trace of ``fun``).
