@@ -45,7 +45,7 @@ import numpy as np
 from mbcal._jax import as_argument, jax, jit, jnp
 from mbcal.cache import Hasher, exported
 from mbcal.errors import SolverError
-from mbcal.staging import prepare
+from mbcal.staging import StaleRecipeError, forget, prepare
 
 Array = Any
 
@@ -807,9 +807,12 @@ def least_squares(
     args = tuple(as_argument(a) for a in args)  # not jnp.asarray: it compiles a program per shape
     local = local if config.manifold else None
     limits, x0 = hard_limits(bounds, x0)
-    key = None
+    key = recipe_key = None
+    given = (fun, args, local)
     if cache_key is not None:
-        key = Hasher().add(cache_key, repr(config), size, x0.shape, [(a.shape, str(a.dtype)) for a in args])
+        # weak types too: they change how a traced program promotes types
+        signature = [(a.shape, str(a.dtype), bool(getattr(a, "weak_type", False))) for a in args]
+        key = Hasher().add(cache_key, repr(config), size, x0.shape, signature)
         if limits is not None:
             key.add("bounded")
         if local is not None:
@@ -818,12 +821,8 @@ def least_squares(
         # What depends on the known arguments only is computed before the program (mbcal.staging).
         # (With local coordinates the solver traces local.residual, and fun only for the size.)
         unknowns = (x0[0],) if local is None else (x0[0], np.zeros(x0.shape[1]))
-        staged = prepare(
-            fun if local is None else local.residual,
-            unknowns,
-            args,
-            None if key is None else key.copy().add("staged").hexdigest(),
-        )
+        recipe_key = None if key is None else key.copy().add("staged").hexdigest()
+        staged = prepare(fun if local is None else local.residual, unknowns, args, recipe_key)
         if staged is not None:
             program_fun, args, recipe = staged
             if local is None:
@@ -836,9 +835,16 @@ def least_squares(
     example: tuple[Any, ...] = (x0, args)
     if limits is not None:
         example += limits
-    if key is not None:
-        program = exported(key.hexdigest(), program, *example)
-    out = program(*example)
+    try:
+        if key is not None:
+            program = exported(key.hexdigest(), program, *example)
+        out = program(*example)
+    except StaleRecipeError:
+        # the cached recipe is not this process's split of fun (another JAX): solve without it
+        if recipe_key is not None:
+            forget(recipe_key)
+        fun, args, local = given
+        return least_squares(fun, x0, args=args, config=config, size=size, bounds=bounds, local=local)
     x, cost, status, it = (np.asarray(v) for v in out[:4])
     active = np.asarray(out[4]) if limits is not None else None
     finite = np.isfinite(cost)

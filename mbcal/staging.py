@@ -39,7 +39,7 @@ from mbcal._jax import jax
 from mbcal.cache import recipe_path
 from mbcal.outputs import atomic_write
 
-__all__ = ["NUMPY", "Prepared", "Recipe", "Split", "prepare", "split"]
+__all__ = ["NUMPY", "Prepared", "Recipe", "Split", "StaleRecipeError", "forget", "prepare", "split"]
 
 RECIPE_FORMAT = 1
 # A constant read by the recipe is written into the cache's JSON: larger ones stay in the program.
@@ -72,11 +72,22 @@ def _select_n(which, *cases):
     return np.choose(which.astype(np.intp), np.broadcast_arrays(*cases))
 
 
+def _flushed(v: np.ndarray) -> np.ndarray:
+    """Subnormal floats as zeros of their sign, as XLA:CPU reads and writes them."""
+    if v.dtype.kind != "f" or v.size == 0:
+        return v
+    small = (np.abs(v) < np.finfo(v.dtype).tiny) & (v != 0)
+    return np.where(small, np.copysign(np.zeros((), v.dtype), v), v) if small.any() else v
+
+
 def _elementwise(f: Callable) -> Callable:
     return lambda *a, **_: f(*a)
 
 
-# The operations computed in NumPy: name → function(*inputs, **params).  ``float``: floating-point
+# The operations computed in NumPy: name → function(*inputs, **params).  Not here: sign, max and
+# min (NumPy's sign(−0) is +0, XLA's −0; max(0, −0) differs likewise), and everything else that
+# NumPy and XLA:CPU compute differently.  XLA:CPU flushes subnormal numbers to zero: the recipe
+# does too (_flushed).  ``float``: floating-point
 # inputs only (integer division and powers round differently in NumPy and XLA).
 NUMPY: dict[str, Callable[..., Any]] = {
     "add": _elementwise(np.add),
@@ -84,8 +95,6 @@ NUMPY: dict[str, Callable[..., Any]] = {
     "mul": _elementwise(np.multiply),
     "neg": _elementwise(np.negative),
     "abs": _elementwise(np.abs),
-    "max": _elementwise(np.maximum),
-    "min": _elementwise(np.minimum),
     "eq": _elementwise(np.equal),
     "ne": _elementwise(np.not_equal),
     "lt": _elementwise(np.less),
@@ -98,7 +107,6 @@ NUMPY: dict[str, Callable[..., Any]] = {
     "is_finite": _elementwise(np.isfinite),
     "square": _elementwise(np.square),
     "div": _elementwise(np.divide),
-    "sign": _elementwise(np.sign),
     "sin": _elementwise(np.sin),
     "cos": _elementwise(np.cos),
     "tan": _elementwise(np.tan),
@@ -127,10 +135,8 @@ NUMPY: dict[str, Callable[..., Any]] = {
     "convert_element_type": lambda a, *, new_dtype, **_: a.astype(new_dtype),
     "copy": _elementwise(np.array),
     "reduce_sum": lambda a, *, axes, **_: np.sum(a, axis=tuple(axes)),
-    "reduce_max": lambda a, *, axes, **_: np.max(a, axis=tuple(axes)),
-    "reduce_min": lambda a, *, axes, **_: np.min(a, axis=tuple(axes)),
 }
-_FLOAT_ONLY = {"div", "sign", "pow", "sin", "cos", "tan", "asin", "acos", "atan", "atan2", "sinh", "cosh", "tanh"}
+_FLOAT_ONLY = {"div", "pow", "sin", "cos", "tan", "asin", "acos", "atan", "atan2", "sinh", "cosh", "tanh"}
 _FLOAT_ONLY |= {"exp", "log", "log1p", "expm1", "sqrt"}
 
 
@@ -232,22 +238,23 @@ class Recipe:
 
     def _evaluate(self, given: list[np.ndarray]) -> tuple[np.ndarray, ...]:
         values: dict[int, np.ndarray] = {}
+        given = [_flushed(a) for a in given]
 
         def read(ref: Ref) -> np.ndarray:
             kind = ref[0]
             if kind == "a":
                 return given[ref[1]]
             if kind == "c":
-                return self.constants[ref[1]]
+                return _flushed(self.constants[ref[1]])
             if kind == "l":
-                return np.asarray(ref[1], dtype=ref[2])
+                return _flushed(np.asarray(ref[1], dtype=ref[2]))
             return values[ref[1]]
 
         with np.errstate(all="ignore"):  # NaN and inf as the program gives them, without warnings
             for name, params, ins, outs in self.steps:
                 result = NUMPY[name](*(read(r) for r in ins), **params)
                 (index, dtype, shape) = outs[0]
-                result = np.asarray(result, dtype=dtype)
+                result = _flushed(np.asarray(result, dtype=dtype))
                 if result.shape != shape:
                     raise ValueError(f"{name} gave shape {result.shape}, not {shape}")
                 values[index] = result
@@ -461,16 +468,36 @@ def _split_for(fun: Callable[..., Any], unknowns: tuple, args: tuple) -> Split:
     return split(fun, _abstract(unknowns), _abstract(args))
 
 
+class StaleRecipeError(Exception):
+    """Raised while a program is traced for a recipe read from the cache that this process's split
+    of the function does not give (made by another version or other settings of JAX): the caller
+    solves without the cached recipe (:func:`forget`)."""
+
+
 @functools.lru_cache(maxsize=8)
-def _program_for(fun: Callable[..., Any], unknowns: tuple, args: tuple) -> Callable[..., Any]:
-    """The program of ``fun``'s split, one object per function and shapes (programs compiled from
-    it are found again), splitting ``fun`` only when it is traced: a process that loads the
-    exported program and the recipe never does."""
+def _program_for(fun: Callable[..., Any], unknowns: tuple, args: tuple, digest: str) -> Callable[..., Any]:
+    """The program of ``fun``'s split for the recipe ``digest``, one object per function, shapes and
+    recipe (programs compiled from it are found again), splitting ``fun`` only when it is traced:
+    a process that loads the exported program and the recipe never does."""
 
     def program(*values: Any) -> Any:
-        return _split_for(fun, unknowns, args).program(*values)
+        made = _split_for(fun, unknowns, args)
+        if made.recipe.digest != digest:
+            raise StaleRecipeError(digest)
+        return made.program(*values)
 
     return program
+
+
+def forget(key: str) -> None:
+    """Drop the recipe kept for ``key``, in this process and in the cache folder."""
+    with _RECIPES_LOCK:
+        for entry in [k for k in _RECIPES if k[1] == key]:
+            del _RECIPES[entry]
+    path = recipe_path(key)
+    if path is not None:
+        with contextlib.suppress(OSError):
+            path.unlink()
 
 
 class Prepared(NamedTuple):
@@ -482,13 +509,13 @@ class Prepared(NamedTuple):
     digest: str
 
 
-# Recipes read or made in this process, by cache key (a few: as the solver's programs): a warm
-# solve neither reads nor parses its recipe again.
-_RECIPES: OrderedDict[str, Recipe] = OrderedDict()
+# Recipes read or made in this process, by function, cache key and shapes (a few: as the solver's
+# programs): a warm solve neither reads nor parses its recipe again.
+_RECIPES: OrderedDict[tuple, Recipe] = OrderedDict()
 _RECIPES_LOCK = threading.Lock()
 
 
-def _remember(key: str, recipe: Recipe) -> None:
+def _remember(key: tuple, recipe: Recipe) -> None:
     with _RECIPES_LOCK:
         _RECIPES[key] = recipe
         _RECIPES.move_to_end(key)
@@ -510,9 +537,10 @@ def prepare(
     sig_u, sig_a = signature(unknowns), signature(args)
     path = None if key is None else recipe_path(key)
     recipe = None
+    memory = (fun, key, sig_u, sig_a)
     if key is not None:
         with _RECIPES_LOCK:
-            recipe = _RECIPES.get(key)
+            recipe = _RECIPES.get(memory)
     if recipe is None and path is not None and path.is_file():
         try:
             recipe = Recipe.from_json(path.read_text(encoding="utf-8"))
@@ -534,5 +562,5 @@ def prepare(
     except Exception:  # noqa: BLE001 — a recipe that does not fit these arguments: the program computes it all
         return None
     if key is not None:
-        _remember(key, recipe)
-    return Prepared(_program_for(fun, sig_u, sig_a), inputs, digest)
+        _remember(memory, recipe)
+    return Prepared(_program_for(fun, sig_u, sig_a, digest), inputs, digest)

@@ -248,3 +248,63 @@ def test_a_foreign_recipe_file_is_replaced_not_trusted(tmp_path, monkeypatch, da
             prepared.program(truth, *prepared.inputs), _whole(chain, truth, readings, y), rtol=1e-13
         )
         assert Recipe.from_json(path.read_text()).digest == prepared.digest  # written anew
+
+
+def test_signed_zeros_and_subnormals_as_xla_computes_them():
+    """NumPy's sign(−0) is +0 and max(0, −0) −0 where XLA gives −0 and +0, and XLA:CPU flushes
+    subnormal numbers: each gave another residual than the program (π for −π, 714 for inf)."""
+
+    def fun(x, a, b):
+        return jnp.stack(
+            [
+                x[0] - jnp.arctan2(jnp.sign(a[0]), -1.0),
+                x[0] - 1.0 / jnp.maximum(0.0, a[0]),
+                x[0] - jnp.log(b[0] * 0.5),
+                x[0] - jnp.log(jnp.abs(b[1])),
+            ]
+        )
+
+    a, b = np.array([-0.0]), np.array([1e-310, -3e-320])
+    made = split(fun, (np.zeros(1),), (a, b))
+    np.testing.assert_array_equal(
+        made.program(np.zeros(1), *made.recipe.inputs((a, b))), _whole(fun, np.zeros(1), a, b)
+    )
+
+
+def test_weak_and_plain_arguments_of_one_key_do_not_share_a_program(tmp_path, monkeypatch):
+    monkeypatch.setenv("MBCAL_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.delenv("MBCAL_CACHE", raising=False)
+
+    def fun(x, a, b):
+        return x - (a * b).astype(x.dtype)  # uint8 arithmetic when a is a weak scalar: 200 * 2 = 144
+
+    b = np.array([2], dtype=np.uint8)
+    weak = least_squares(fun, np.zeros(1), args=(jnp.asarray(200), b), size=1, cache_key="weak-key")
+    plain = least_squares(fun, np.zeros(1), args=(np.asarray(200), b), size=1, cache_key="weak-key")
+    assert weak.x_best[0] == pytest.approx(144.0) and plain.x_best[0] == pytest.approx(400.0)
+
+
+def test_a_cached_recipe_of_another_split_is_dropped_and_the_problem_solved(tmp_path, monkeypatch, data):
+    """A recipe in the cache that this process's split does not give (another JAX made it) must not
+    feed its inputs to this process's program: the solve goes on without it."""
+    from mbcal import staging
+
+    monkeypatch.setenv("MBCAL_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.delenv("MBCAL_CACHE", raising=False)
+    readings, y, truth = data
+    starts = np.array([[0.0, 1.0], [0.2, 0.5]])
+    first = least_squares(chain, starts, args=(readings, y), size=24, cache_key="stale-test")
+    exports = tmp_path / "cache" / "exports"
+    (recipe,) = exports.glob("*.recipe.json")
+    for program in exports.glob("*.jaxexport"):
+        program.unlink()
+
+    def other(x, r, y):  # the same shapes, another split
+        return (x[0] * jnp.cos(r[:, 0]) + x[1] * jnp.sin(r[:, 1]) - y[:12]).repeat(2)
+
+    recipe.write_text(split(other, (np.zeros(2),), (readings, y)).recipe.to_json())
+    staging._RECIPES.clear()
+    again = least_squares(chain, starts, args=(readings, y), size=24, cache_key="stale-test")
+    np.testing.assert_allclose(again.x, first.x, rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(again.x_best, truth, atol=5e-3)
+    assert not recipe.exists()  # dropped: the next run writes its own
