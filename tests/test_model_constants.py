@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import mbcal
+import mbcal.language.load as load_module
 from mbcal.problem import Problem
 
 from conftest import MODELS
@@ -98,6 +99,24 @@ def test_point_files_and_plugin_code_are_part_of_the_fingerprint(tmp_path, monke
     assert Problem(model, plan, ["a"]).fingerprint() == second
     assert fingerprint() not in (first, second)
 
+    # a file saved while the model is being read: keyed by what the model holds, not by the new file
+    def check_then_save(*a, **k):
+        model = original_check(*a, **k)
+        (tmp_path / "c.txt").write_text("0.25 0\n")
+        return model
+
+    (tmp_path / "c.txt").write_text("0.5 0\n")
+    (tmp_path / "m.mdl").write_text(text)
+    original_check = load_module.check
+    monkeypatch.setattr(load_module, "check", check_then_save)
+    model = mbcal.load_model(tmp_path / "m.mdl")
+    monkeypatch.setattr(load_module, "check", original_check)
+    assert float(model.points[0].position.value[0]) == 0.5
+    plan = mbcal.measurements_from_records(
+        [{"id": "p", "kind": "image_point", "camera": "eye", "point": "f.t.p0", "sigma": 1.0}], model
+    )
+    assert Problem(model, plan, ["a"]).fingerprint() == second != fingerprint()
+
     source = tmp_path / "zplugin.py"
     source.write_text(
         "from mbcal.measurements import MeasurementModel, Role\n"
@@ -144,3 +163,36 @@ def test_suggested_measurements_are_predicted_with_the_callers_known_values():
     assert np.allclose(tip, truth.jacobian(truth.params.x0), rtol=1e-9)
     plain = Problem(model, plan("lever.tip"), ["lever.angle"])
     assert not np.allclose(tip, plain.jacobian(plain.params.x0), rtol=1e-3)
+
+
+def test_a_gltf_buffer_is_part_of_the_fingerprint(tmp_path, monkeypatch):
+    """A .gltf reads its vertices from buffer files beside it: an edited buffer kept the old key."""
+    import trimesh
+
+    monkeypatch.chdir(tmp_path)
+
+    def write(size):
+        for name, data in trimesh.exchange.gltf.export_gltf(trimesh.creation.box(extents=(size,) * 3)).items():
+            (tmp_path / name).write_bytes(data)
+
+    write(0.1)
+    (tmp_path / "m.mdl").write_text(
+        "param a = 0 m in [-1 m, 1 m]\n"
+        'frame f at (a, 0, 1 m) {\n  point p = (0, 0, 0)\n  shape s = mesh("model.gltf")\n}\n' + CAMERA
+    )
+
+    def fingerprint():
+        model = mbcal.load_model(tmp_path / "m.mdl")
+        plan = mbcal.measurements_from_records(
+            [{"id": "p", "kind": "image_point", "camera": "eye", "point": "f.p", "sigma": 1.0}], model
+        )
+        return model, Problem(model, plan, ["a"]).fingerprint()
+
+    model, first = fingerprint()
+    buffers = [f for f in model.data_files if f.endswith(".bin")]
+    assert buffers, model.data_files
+    gltf = (tmp_path / "model.gltf").read_bytes()
+    write(0.5)
+    (tmp_path / "model.gltf").write_bytes(gltf)  # the same .gltf, another buffer
+    model, again = fingerprint()
+    assert np.ptp(model.shapes[0].mesh.vertices, axis=0)[0] == pytest.approx(0.5) and again != first

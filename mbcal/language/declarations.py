@@ -108,7 +108,11 @@ def build_model(c: Compiler) -> Model:
         targets=tuple(targets),
         templates=tuple(names.templates),
         files=tuple(dict.fromkeys(names.files)),
-        data_files=tuple(dict.fromkeys([*names.data_files, *(s.mesh.path for s in shapes if s.mesh is not None)])),
+        data_files=tuple(
+            dict.fromkeys(
+                [*names.data_files, *(f for s in shapes if s.mesh is not None for f in (s.mesh.path, *s.mesh.buffers))]
+            )
+        ),
         warnings=tuple(names.warnings),
     )
 

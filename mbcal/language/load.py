@@ -9,6 +9,7 @@ import os
 from pathlib import Path
 
 from mbcal.errors import MdlError, SourceSpan
+from mbcal.language import files as _files
 from mbcal.language.check import check
 from mbcal.language.model import Model
 from mbcal.language.parse import deep_recursion, parse_file, parse_text_with_includes
@@ -23,15 +24,19 @@ def _too_deep(path: str) -> MdlError:
     )
 
 
-def _read_digests(model: Model) -> Model:
-    """The model with the digests of the files it was read from, as they are now, at the end of
-    reading it (:attr:`Model.file_digests`)."""
+def _read_digests(model: Model, read: dict[str, str]) -> Model:
+    """The model with the digests of the files it was read from (:attr:`Model.file_digests`): of
+    the bytes read (``read``, :func:`mbcal.language.files.recording`), else (a file its reader
+    hands to another library: a .gltf's buffers) as the file is now."""
     digests = []
     for name in dict.fromkeys([*model.files, *model.data_files]):
-        try:
-            digests.append((name, hashlib.sha256(Path(name).read_bytes()).hexdigest()))
-        except OSError:
-            digests.append((name, ""))
+        digest = _files.digest_of(read, name)
+        if digest is None:
+            try:
+                digest = hashlib.sha256(Path(name).read_bytes()).hexdigest()
+            except OSError:
+                digest = ""
+        digests.append((name, digest))
     return dataclasses.replace(model, file_digests=tuple(digests))
 
 
@@ -46,13 +51,14 @@ def load_model(path: str | os.PathLike[str]) -> Model:
     path = Path(path)
     if path.suffix.lower() == ".urdf":
         return load_urdf(path)
-    try:
-        statements = parse_file(path)
-        with deep_recursion():
-            model = check(statements, str(path))
-    except RecursionError:
-        raise _too_deep(str(path)) from None
-    return _read_digests(model)
+    with _files.recording() as read:
+        try:
+            statements = parse_file(path)
+            with deep_recursion():
+                model = check(statements, str(path))
+        except RecursionError:
+            raise _too_deep(str(path)) from None
+    return _read_digests(model, read)
 
 
 def load_model_text(text: str, path: str = "<string>") -> Model:
@@ -62,14 +68,16 @@ def load_model_text(text: str, path: str = "<string>") -> Model:
             f"model text must be a str, got {type(text).__name__}"
             + (" (decode it first)" if isinstance(text, bytes) else "")
         )
-    try:
-        statements = parse_text_with_includes(text, path)
-        with deep_recursion():
-            model = check(statements, path)
-    except RecursionError:
-        raise _too_deep(path) from None
+    with _files.recording() as read:
+        try:
+            statements = parse_text_with_includes(text, path)
+            with deep_recursion():
+                model = check(statements, path)
+        except RecursionError:
+            raise _too_deep(path) from None
     # The text is not in a file the cache could hash: its digest stands for it.
-    return _read_digests(dataclasses.replace(model, text_digest=hashlib.sha256(text.encode("utf-8")).hexdigest()))
+    model = dataclasses.replace(model, text_digest=hashlib.sha256(text.encode("utf-8")).hexdigest())
+    return _read_digests(model, read)
 
 
 def load_urdf(path: str | os.PathLike[str]) -> Model:
@@ -84,6 +92,7 @@ def load_urdf(path: str | os.PathLike[str]) -> Model:
         :class:`UrdfError` for a malformed URDF (file and line where known).
     """
     path = Path(path)
-    text = urdf_to_mdl(path)
-    model = load_model_text(text, str(path.with_name(path.name + ".mdl")))
-    return _read_digests(dataclasses.replace(model, path=str(path), files=(str(path), *model.files[1:])))
+    with _files.recording() as read:
+        text = urdf_to_mdl(path)
+        model = load_model_text(text, str(path.with_name(path.name + ".mdl")))
+    return _read_digests(dataclasses.replace(model, path=str(path), files=(str(path), *model.files[1:])), read)

@@ -23,6 +23,7 @@ import numpy as np
 
 from mbcal.cache import Hasher, cache_dir
 from mbcal.errors import MeshError, SourceSpan
+from mbcal.language import files
 from mbcal.language.model import MeshData
 from mbcal.outputs import atomic_write
 
@@ -51,6 +52,12 @@ def load_mesh(path: Path, span: SourceSpan | None) -> MeshData:
         raise MeshError(f"mesh file is empty: {path}", span)
     key = _entry(path, suffix)
     entry, content = key if key is not None else (None, b"")
+    if key is None:  # not read for the cache: read for the digest of what the model is built from
+        try:
+            content = path.read_bytes()
+        except OSError:
+            content = b""  # trimesh will say what is wrong with it
+    files.note(path, content)
     arrays = _read_entry(entry) if entry is not None else None
     if arrays is None:
         vertices, faces = _read_with_trimesh(path, span)
@@ -64,7 +71,25 @@ def load_mesh(path: Path, span: SourceSpan | None) -> MeshData:
         raise MeshError(f"mesh {path} has faces that refer to missing vertices", span)
     if arrays is None and entry is not None and _unchanged(path, content):  # only a valid mesh is kept
         _write_entry(entry, vertices, faces)
-    return MeshData(str(path), vertices, faces)
+    return MeshData(str(path), vertices, faces, _gltf_buffers(path, content) if suffix == ".gltf" else ())
+
+
+def _gltf_buffers(path: Path, content: bytes) -> tuple[str, ...]:
+    """The files a .gltf reads its vertices from (its buffers that are not data: URIs): the model's
+    data files too, so that an edited buffer is a changed model."""
+    import json
+    from urllib.parse import unquote
+
+    try:
+        buffers = json.loads(content.decode("utf-8")).get("buffers", [])
+    except (ValueError, AttributeError):
+        return ()
+    found = []
+    for buffer in buffers if isinstance(buffers, list) else []:
+        uri = buffer.get("uri") if isinstance(buffer, dict) else None
+        if isinstance(uri, str) and uri and not uri.startswith("data:"):
+            found.append(str((path.parent / unquote(uri)).resolve()))
+    return tuple(found)
 
 
 def _read_with_trimesh(path: Path, span: SourceSpan | None) -> tuple[np.ndarray, np.ndarray]:

@@ -190,6 +190,7 @@ class MeshData:
     path: str
     vertices: np.ndarray  # (v, 3)
     faces: np.ndarray  # (f, 3) int
+    buffers: tuple[str, ...] = ()  # the other files it reads (a .gltf's buffers)
 
 
 @dataclass(frozen=True, eq=False)

@@ -23,7 +23,7 @@ from pathlib import Path
 from mbcal import errors as _errors
 from mbcal.cache import CACHE_PARTS, Hasher, cache_dir
 from mbcal.errors import IncludeError, MdlSyntaxError, SourceSpan, remember_source, undecodable_at
-from mbcal.language import ast
+from mbcal.language import ast, files
 from mbcal.language.ast import deep_recursion
 from mbcal.outputs import atomic_write
 from mbcal.resources import grammar_path
@@ -229,7 +229,7 @@ def parse_text_with_includes(text: str, path: str = "<string>") -> tuple[ast.Sta
 
 def _read_model_text(path: Path, span: SourceSpan | None) -> str:
     try:
-        data = path.read_bytes()
+        data = files.read_bytes(path)
     except FileNotFoundError:
         raise IncludeError(f"file not found: {path}", span) from None
     except IsADirectoryError:

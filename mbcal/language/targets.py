@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from mbcal.errors import DimensionError, MdlError, MdlTypeError, UndefinedNameError, suggest
-from mbcal.language import ast
+from mbcal.language import ast, files
 from mbcal.language.arguments import bind
 from mbcal.language.expressions import Compiler
 from mbcal.language.graph import SCALAR, VECTOR, Const, Node
@@ -182,7 +182,7 @@ def _file_points(
         columns = int(node.value)
     checker.names.data_files.append(str(path.resolve()))
     try:
-        text = path.read_text(encoding="utf-8")
+        text = files.read_bytes(path).decode("utf-8")
     except FileNotFoundError:
         raise MdlError(f"point file not found: {path}", expr.span) from None
     except (OSError, UnicodeDecodeError) as err:

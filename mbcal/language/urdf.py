@@ -43,6 +43,7 @@ Calibrated URDFs are written by :mod:`mbcal.export.urdf`.
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import os
@@ -55,6 +56,7 @@ import numpy as np
 
 from mbcal.errors import MeshError, SourceSpan, UrdfError
 from mbcal.geometry.shapes import get_shape, shape_kinds
+from mbcal.language import files
 from mbcal.language.meshes import MESH_SUFFIXES, load_mesh
 from mbcal.language.parse import RESERVED
 
@@ -158,7 +160,8 @@ def read_robot(path: str | os.PathLike[str]) -> _Robot:
     if not path.is_file():
         raise UrdfError(f"{path}: URDF file not found")
     try:
-        tree = etree.parse(str(path), etree.XMLParser(remove_blank_text=False, resolve_entities=False))
+        parser = etree.XMLParser(remove_blank_text=False, resolve_entities=False)
+        tree = etree.parse(io.BytesIO(files.read_bytes(path)), parser, base_url=str(path))
     except etree.XMLSyntaxError as err:
         line, column = err.position or (err.lineno, 1)
         message = f"malformed XML: {err.msg}"
