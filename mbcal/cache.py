@@ -43,6 +43,7 @@ import os
 import re
 import sys
 import threading
+import weakref
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -347,11 +348,31 @@ def code_fingerprint() -> str:
     return h.hexdigest()
 
 
+# Digests of the classes' sources, taken once per class: the code that runs is the code that was
+# read when its class was made (a file saved since then is not running yet).
+_SOURCE_DIGESTS: weakref.WeakKeyDictionary[type, str | None] = weakref.WeakKeyDictionary()
+
+
 def source_fingerprint(obj: Any) -> str | None:
     """A hash of the source of the package (or single module) that defines ``obj``'s class: a
     plugin's measurement model whose code changed never reuses a program exported with the old
-    code.  None when the code has no file to read (defined in an interactive session)."""
-    name = type(obj).__module__
+    code.  None when the code has no file to read (defined in an interactive session).  Taken the
+    first time a class is asked for (mbcal asks when a plugin is registered or loaded), not again:
+    a file edited while the process runs the old code does not stand for it."""
+    cls = type(obj)
+    try:
+        return _SOURCE_DIGESTS[cls]
+    except KeyError:
+        pass
+    except TypeError:  # a class that cannot be weakly referenced: read every time
+        return _source_digest(cls)
+    digest = _source_digest(cls)
+    _SOURCE_DIGESTS[cls] = digest
+    return digest
+
+
+def _source_digest(cls: type) -> str | None:
+    name = cls.__module__
     top = sys.modules.get(name.split(".")[0])
     module = sys.modules.get(name)
     roots = [Path(p) for p in getattr(top, "__path__", [])] if name != "__main__" else []

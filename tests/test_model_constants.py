@@ -138,8 +138,17 @@ def test_point_files_and_plugin_code_are_part_of_the_fingerprint(tmp_path, monke
     plan = mbcal.measurements_from_records([{"id": "t", "kind": "point_z_test", "point": "lever.tip"}], model)
     before = Problem(model, plan, ["lever.angle"]).fingerprint()
     source.write_text(source.read_text().replace("1.0 *", "2.0 *"))
-    assert before is not None and Problem(model, plan, ["lever.angle"]).fingerprint() != before
-    monkeypatch.setitem(sys.modules, "zplugin", type(sys)("zplugin"))  # code without a file to hash
+    # the file changed but the process still runs the old code: the key is the old code's
+    assert before is not None and Problem(model, plan, ["lever.angle"]).fingerprint() == before
+    spec.loader.exec_module(module := importlib.util.module_from_spec(spec))  # the new code, loaded
+    monkeypatch.setitem(sys.modules, "zplugin", module)
+    kinds.register(module.PointZ())
+    assert Problem(model, plan, ["lever.angle"]).fingerprint() not in (None, before)
+    memory = type(sys)("zmemory")  # code without a file to hash (a notebook's cell)
+    exec(source.read_text().replace("PointZ", "PointM"), memory.__dict__)  # noqa: S102 — the test's own text
+    monkeypatch.setitem(sys.modules, "zmemory", memory)
+    memory.PointM.__module__ = "zmemory"
+    kinds.register(memory.PointM())
     assert Problem(model, plan, ["lever.angle"]).fingerprint() is None  # then no disk cache
 
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 import warnings
 from importlib import metadata
 
+from mbcal.cache import source_fingerprint
 from mbcal.errors import MeasurementFileError, suggest
 from mbcal.measurements.builtin import BUILTINS
 from mbcal.measurements.protocol import MeasurementModel
@@ -53,6 +54,7 @@ def _load() -> dict[str, MeasurementModel]:
                 stacklevel=3,
             )
         found.setdefault(instance.kind, instance)
+        _take_digest(instance)
     # Running from a source tree without installed metadata: the built-ins are still there.
     for cls in BUILTINS:
         found.setdefault(cls.kind, cls())
@@ -73,7 +75,15 @@ def register(model: MeasurementModel | type[MeasurementModel]) -> MeasurementMod
     if not instance.kind:
         raise ValueError("a measurement model needs a 'kind'")
     _EXTRA[instance.kind] = instance
+    _take_digest(instance)
     return instance
+
+
+def _take_digest(instance: MeasurementModel) -> None:
+    """A plugin's source digested as it is loaded (mbcal.cache.source_fingerprint): a file edited
+    later is not the code that runs."""
+    if not type(instance).__module__.startswith("mbcal."):
+        source_fingerprint(instance)
 
 
 register_measurement_model = register
