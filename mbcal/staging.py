@@ -537,6 +537,7 @@ def prepare(
     sig_u, sig_a = signature(unknowns), signature(args)
     path = None if key is None else recipe_path(key)
     recipe = None
+    from_disk = False
     memory = (fun, key, sig_u, sig_a)
     if key is not None:
         with _RECIPES_LOCK:
@@ -544,6 +545,7 @@ def prepare(
     if recipe is None and path is not None and path.is_file():
         try:
             recipe = Recipe.from_json(path.read_text(encoding="utf-8"))
+            from_disk = True
         except Exception:  # noqa: BLE001 — truncated, foreign or of another version: split again, write anew
             recipe = None
     if recipe is None:
@@ -560,6 +562,8 @@ def prepare(
         inputs = recipe.inputs(args)
         digest = recipe.digest
     except Exception:  # noqa: BLE001 — a recipe that does not fit these arguments: the program computes it all
+        if from_disk and key is not None:
+            forget(key)  # and the next call splits again and writes its own
         return None
     if key is not None:
         _remember(memory, recipe)

@@ -248,6 +248,11 @@ def test_a_foreign_recipe_file_is_replaced_not_trusted(tmp_path, monkeypatch, da
             prepared.program(truth, *prepared.inputs), _whole(chain, truth, readings, y), rtol=1e-13
         )
         assert Recipe.from_json(path.read_text()).digest == prepared.digest  # written anew
+    # a recipe that reads but does not fit (another function's under this key): not used, dropped
+    path.write_text(split(lambda x, r: x[0] * jnp.cos(r), (np.zeros(2),), (readings,)).recipe.to_json())
+    staging._RECIPES.clear()
+    assert staging.prepare(chain, (np.zeros(2),), (readings, y), key) is None and not path.exists()
+    assert staging.prepare(chain, (np.zeros(2),), (readings, y), key) is not None and path.exists()
 
 
 def test_signed_zeros_and_subnormals_as_xla_computes_them():
