@@ -824,13 +824,13 @@ def least_squares(
         recipe_key = None if key is None else key.copy().add("staged").hexdigest()
         staged = prepare(fun if local is None else local.residual, unknowns, args, recipe_key)
         if staged is not None:
-            program_fun, args, recipe = staged
+            program_fun, args, digest = staged
             if local is None:
                 fun = program_fun
             else:
                 local = _staged_local(_Identity(local), program_fun)
             if key is not None:
-                key.add("staged", recipe)  # the exported program is the one made for this recipe
+                key.add("staged", digest)  # the exported program is the one made for this recipe
     program = _compiled(fun, config, size, limits is not None, local if local is None else _Identity(local))
     example: tuple[Any, ...] = (x0, args)
     if limits is not None:

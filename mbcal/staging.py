@@ -87,8 +87,8 @@ def _elementwise(f: Callable) -> Callable:
 # The operations computed in NumPy: name → function(*inputs, **params).  Not here: sign, max and
 # min (NumPy's sign(−0) is +0, XLA's −0; max(0, −0) differs likewise), and everything else that
 # NumPy and XLA:CPU compute differently.  XLA:CPU flushes subnormal numbers to zero: the recipe
-# does too (_flushed).  ``float``: floating-point
-# inputs only (integer division and powers round differently in NumPy and XLA).
+# does too (_flushed).  _FLOAT_ONLY: moved for floating-point values only (integer division and
+# powers round differently in NumPy and XLA).
 NUMPY: dict[str, Callable[..., Any]] = {
     "add": _elementwise(np.add),
     "sub": _elementwise(np.subtract),
@@ -187,13 +187,15 @@ def _movable(eqn: Any) -> bool:
 Ref = tuple
 
 
+# The recipe's JSON: Python's json module writes and reads NaN and ±Infinity as they are (mbcal
+# alone reads these files); dtypes and tuples are marked.
+
+
 def _encode(value: Any) -> Any:
     if isinstance(value, np.dtype):
         return {"dtype": value.name}
     if isinstance(value, tuple):
         return {"tuple": [_encode(v) for v in value]}
-    if isinstance(value, float) and not np.isfinite(value):
-        return {"float": repr(value)}
     return value
 
 
@@ -203,8 +205,6 @@ def _decode(value: Any) -> Any:
             return np.dtype(value["dtype"])
         if "tuple" in value:
             return tuple(_decode(v) for v in value["tuple"])
-        if "float" in value:
-            return float(value["float"])
     if isinstance(value, list):
         return tuple(_decode(v) for v in value)
     return value
@@ -267,17 +267,19 @@ class Recipe:
         return hashlib.sha256(self.to_json().encode("utf-8")).hexdigest()
 
     def to_json(self) -> str:
-        constants = [{"dtype": c.dtype.name, "shape": list(c.shape), "data": _encode_flat(c)} for c in self.constants]
+        constants = [
+            {"dtype": c.dtype.name, "shape": list(c.shape), "data": c.ravel().tolist()} for c in self.constants
+        ]
         steps = [
             [
                 name,
                 {k: _encode(v) for k, v in params.items()},
-                [list(_ref_json(r)) for r in ins],
+                [list(r) for r in ins],
                 [[i, d, list(s)] for i, d, s in outs],
             ]
             for name, params, ins, outs in self.steps
         ]
-        outputs = [list(_ref_json(r)) for r in self.outputs]
+        outputs = [list(r) for r in self.outputs]
         return json.dumps(
             {"format": RECIPE_FORMAT, "n_args": self.n_args, "constants": constants, "steps": steps, "outputs": outputs}
         )
@@ -287,10 +289,7 @@ class Recipe:
         doc = json.loads(text)
         if not isinstance(doc, dict) or doc.get("format") != RECIPE_FORMAT:
             raise ValueError("another recipe format")
-        constants = tuple(
-            np.asarray([float(v) if isinstance(v, str) else v for v in c["data"]], dtype=c["dtype"]).reshape(c["shape"])
-            for c in doc["constants"]
-        )
+        constants = tuple(np.asarray(c["data"], dtype=c["dtype"]).reshape(c["shape"]) for c in doc["constants"])
         steps = []
         for name, params, ins, outs in doc["steps"]:
             if name not in NUMPY:
@@ -306,21 +305,9 @@ class Recipe:
         return Recipe(int(doc["n_args"]), constants, tuple(steps), tuple(_ref_from_json(r) for r in doc["outputs"]))
 
 
-def _encode_flat(c: np.ndarray) -> list:
-    return [repr(float(v)) if isinstance(v, float) and not np.isfinite(v) else v for v in c.ravel().tolist()]
-
-
-def _ref_json(ref: Ref) -> tuple:
-    if ref[0] == "l":
-        value = ref[1]
-        return ("l", repr(value) if isinstance(value, float) and not np.isfinite(value) else value, ref[2])
-    return ref
-
-
 def _ref_from_json(ref: list) -> Ref:
     if ref[0] == "l":
-        value = float(ref[1]) if isinstance(ref[1], str) else ref[1]
-        return ("l", value, str(ref[2]))
+        return ("l", ref[1], str(ref[2]))
     if ref[0] not in ("a", "c", "v"):
         raise ValueError(f"unknown reference {ref!r}")
     return (str(ref[0]), int(ref[1]))
@@ -365,7 +352,9 @@ def split(fun: Callable[..., Any], unknowns: Sequence[Any], args: Sequence[Any])
     moved, kept = [], []
     counter = [0]
 
-    def ref_of(v: Any, const_refs: dict) -> Ref:
+    const_refs: dict = {}
+
+    def ref_of(v: Any) -> Ref:
         if isinstance(v, jcore.Literal):
             return _literal(v)
         if v in from_args:
@@ -374,8 +363,6 @@ def split(fun: Callable[..., Any], unknowns: Sequence[Any], args: Sequence[Any])
             const_refs[v] = ("c", len(constants))
             constants.append(np.asarray(small[v]))
         return const_refs[v]
-
-    const_refs: dict = {}
 
     def emit(eqn: Any, ins: list[Ref]) -> list[Ref]:
         """Append eqn's steps (a nested jitted function inlined) and return its outputs' refs."""
@@ -404,10 +391,7 @@ def split(fun: Callable[..., Any], unknowns: Sequence[Any], args: Sequence[Any])
         vars_in = [v for v in eqn.invars if not isinstance(v, jcore.Literal)]
         available = all(v in from_args or v in small for v in vars_in)
         if vars_in and available and any(v in from_args for v in vars_in) and _movable(eqn):
-            if eqn.primitive.name not in ("jit", "pjit") and len(eqn.outvars) != 1:
-                kept.append(eqn)
-                continue
-            ins = [ref_of(v, const_refs) for v in eqn.invars]
+            ins = [ref_of(v) for v in eqn.invars]  # every NUMPY operation has one output
             for v, r in zip(eqn.outvars, emit(eqn, ins)):
                 from_args[v] = r
             moved.append(eqn)

@@ -23,7 +23,7 @@ def _key(path: str | os.PathLike[str]) -> str:
 @contextlib.contextmanager
 def recording() -> Iterator[dict[str, str]]:
     """Collect, while inside, the SHA-256 of the first bytes read of every file (by its real path);
-    a load inside another (a URDF's generated model) adds to the outer one's."""
+    a load inside another adds to the outer one's."""
     outer = _DIGESTS.get()
     digests: dict[str, str] = {} if outer is None else outer
     token = _DIGESTS.set(digests)

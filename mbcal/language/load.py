@@ -69,15 +69,19 @@ def load_model_text(text: str, path: str = "<string>") -> Model:
             + (" (decode it first)" if isinstance(text, bytes) else "")
         )
     with _files.recording() as read:
-        try:
-            statements = parse_text_with_includes(text, path)
-            with deep_recursion():
-                model = check(statements, path)
-        except RecursionError:
-            raise _too_deep(path) from None
-    # The text is not in a file the cache could hash: its digest stands for it.
-    model = dataclasses.replace(model, text_digest=hashlib.sha256(text.encode("utf-8")).hexdigest())
+        model = _checked_text(text, path)
     return _read_digests(model, read)
+
+
+def _checked_text(text: str, path: str) -> Model:
+    try:
+        statements = parse_text_with_includes(text, path)
+        with deep_recursion():
+            model = check(statements, path)
+    except RecursionError:
+        raise _too_deep(path) from None
+    # The text is not in a file the cache could hash: its digest stands for it.
+    return dataclasses.replace(model, text_digest=hashlib.sha256(text.encode("utf-8")).hexdigest())
 
 
 def load_urdf(path: str | os.PathLike[str]) -> Model:
@@ -94,5 +98,5 @@ def load_urdf(path: str | os.PathLike[str]) -> Model:
     path = Path(path)
     with _files.recording() as read:
         text = urdf_to_mdl(path)
-        model = load_model_text(text, str(path.with_name(path.name + ".mdl")))
+        model = _checked_text(text, str(path.with_name(path.name + ".mdl")))  # digests once, below
     return _read_digests(dataclasses.replace(model, path=str(path), files=(str(path), *model.files[1:])), read)
