@@ -316,9 +316,11 @@ class LocalParameterisation(Protocol):
         """x ⊞ d: the point reached by the step d from x (x ⊞ 0 = x)."""
         ...
 
-    def represent(self, x: Array, reference: Array) -> Array:
-        """The coordinates of the same point nearest ``reference`` (where one point has several,
-        as angles do); applied to each restart's result with its start as the reference."""
+    def represent(self, x: np.ndarray, reference: np.ndarray) -> np.ndarray:
+        """The coordinates of the same points nearest ``reference`` (where one point has several,
+        as angles do): x and reference are (restarts, n) NumPy arrays, each restart's result and
+        its start.  Applied once after the solve, outside the compiled program (write it with
+        NumPy)."""
         ...
 
 
@@ -668,19 +670,17 @@ def _lm_batch(
         rn = jnp.sqrt(jnp.sum(final.rw * final.rw))
         return active_at_end(final.x, g, jnp.sqrt(jnp.diag(A)), rn, bounds[0], bounds[1], config.gtol)
 
-    def finish(final: _LMState, x0: Array) -> tuple:
+    def finish(final: _LMState) -> tuple:
         # The running cost accumulates exact changes; report the cost of the final residual itself.
         cost = jnp.where(
             final.status == Status.NON_FINITE, jnp.inf, robust_system(loss, scale, final.r, jnp.zeros((m, 1)))[0]
         )
-        if local is not None:
-            final = final._replace(x=local.represent(final.x, x0))
         if bounds is None:
             return final.x, cost, final.status, final.it
         return final.x, cost, final.status, final.it, final_active(final)
 
     final = restart_loop(cond, body, jax.vmap(start)(x0s))
-    return jax.vmap(finish)(final, x0s)
+    return jax.vmap(finish)(final)
 
 
 class _Identity:
@@ -711,7 +711,7 @@ class _StagedLocal:
     def plus(self, x: Array, d: Array) -> Array:
         return self._local.plus(x, d)
 
-    def represent(self, x: Array, reference: Array) -> Array:
+    def represent(self, x: np.ndarray, reference: np.ndarray) -> np.ndarray:
         return self._local.represent(x, reference)
 
 
@@ -847,6 +847,8 @@ def least_squares(
         return least_squares(fun, x0, args=args, config=config, size=size, bounds=bounds, local=local)
     x, cost, status, it = (np.asarray(v) for v in out[:4])
     active = np.asarray(out[4]) if limits is not None else None
+    if local is not None:  # each result in the coordinates nearest its start
+        x = local.represent(x, x0)
     finite = np.isfinite(cost)
     best = int(np.argmin(np.where(finite, cost, np.inf))) if finite.any() else -1
     return LeastSquaresResult(

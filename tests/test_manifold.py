@@ -217,6 +217,29 @@ def test_the_step_rotates_about_the_current_orientation(room, room_data, angles)
         assert np.all(np.abs(moved[idx] - x[idx]) < math.pi + 0.5)  # angles move continuously (mod 2π)
 
 
+def test_results_are_written_in_the_angles_nearest_their_starts(room, room_data):
+    """represent (NumPy, after the solve): the other branch (r + π, π − p, y + π) and other multiples
+    of 2π are rewritten as the equivalent angles nearest each restart's start; nothing else moves."""
+    problem = Problem(room, room_data, ["room.*"])
+    names = problem.params.names
+    idx = [names.index(a) for a in ANGLES]
+    rng = np.random.default_rng(4)
+    starts = np.tile(problem.params.x0, (5, 1)) + rng.normal(scale=0.01, size=(5, len(names)))
+    starts[:, idx] = rng.uniform(-3.0, 3.0, size=(5, 3))
+    k = rng.choice([-2, -1, 1, 2], size=(5, 3)) * 2.0 * np.pi  # whole turns, none zero
+    moved = starts.copy()
+    r, p, y = starts[:, idx].T
+    moved[:, idx] = np.stack([r + np.pi, np.pi - p, y + np.pi], axis=1) + k  # the same rotations
+    moved[0, idx] = starts[0, idx] + k[0]  # the same branch, other turns
+    out = problem.local.represent(moved, starts)
+    assert out.shape == moved.shape and np.all(out[:, idx] != moved[:, idx])
+    np.testing.assert_allclose(out[:, idx], starts[:, idx], atol=1e-12)
+    others = [i for i in range(len(names)) if i not in idx]
+    np.testing.assert_array_equal(out[:, others], moved[:, others])
+    for row, before in zip(out, moved):
+        np.testing.assert_allclose(rotation(*row[idx]), rotation(*before[idx]), atol=1e-12)
+
+
 # ---- the 89.9° case ------------------------------------------------------------------------------------
 
 TILTED = {
