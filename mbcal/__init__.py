@@ -14,6 +14,8 @@ from __future__ import annotations
 from importlib import import_module
 from typing import Any
 
+from mbcal import _sources  # noqa: F401  (the source files as imported: mbcal.cache's key trusts only them)
+
 __version__ = "0.1.0"
 
 # Public names → the module that defines them.  Loaded on first use so that `mbcal check`

@@ -43,6 +43,7 @@ import os
 import re
 import sys
 import threading
+import warnings
 import weakref
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
@@ -52,6 +53,7 @@ from typing import Any
 
 import numpy as np
 
+from mbcal import _sources
 from mbcal._collector import gc_paused
 from mbcal.errors import MbcalError
 from mbcal.outputs import atomic_write
@@ -333,7 +335,12 @@ def enable_compilation_cache() -> Path | None:
 
 @functools.lru_cache(maxsize=1)
 def code_fingerprint() -> str:
-    """A hash of mbcal's own source: a new mbcal never reuses an old exported program."""
+    """A hash of mbcal's own source: a new mbcal never reuses an old exported program.
+
+    Read at the first call; when a source file was saved since mbcal was imported
+    (:mod:`mbcal._sources`), what is read is not what runs, and the hash is made unique to this
+    process (with a warning): its programs are neither taken from the cache nor found there by
+    another process."""
     h = hashlib.sha256()
     root = package_root()
     for path in sorted(root.rglob("*.py")):
@@ -345,6 +352,13 @@ def code_fingerprint() -> str:
     from mbcal._jax import jax
 
     h.update(jax.__version__.encode())
+    if _sources.changed():  # after the read: a save while it read counts too
+        warnings.warn(
+            "mbcal's source files changed since mbcal was imported: this process runs the code as it "
+            "was then, so its compiled programs are kept out of the shared cache (restart Python to use it)",
+            stacklevel=2,
+        )
+        h.update(os.urandom(16))
     return h.hexdigest()
 
 

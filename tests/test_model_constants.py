@@ -5,6 +5,10 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+import json
+import os
+import shutil
+import subprocess
 import sys
 
 import numpy as np
@@ -14,7 +18,7 @@ import mbcal
 import mbcal.language.load as load_module
 from mbcal.problem import Problem
 
-from conftest import MODELS
+from conftest import MODELS, ROOT
 
 CAMERA = "camera eye(width = 640, height = 480, f = 500) at look_at(eye = (0, -3 m, 1 m), target = (0, 0, 1 m))\n"
 
@@ -205,3 +209,47 @@ def test_a_gltf_buffer_is_part_of_the_fingerprint(tmp_path, monkeypatch):
     (tmp_path / "model.gltf").write_bytes(gltf)  # the same .gltf, another buffer
     model, again = fingerprint()
     assert np.ptp(model.shapes[0].mesh.vertices, axis=0)[0] == pytest.approx(0.5) and again != first
+
+
+SOURCE_EDIT = """
+import json, pathlib, sys, warnings
+import mbcal
+from mbcal import cache
+assert pathlib.Path(mbcal.__file__).parent == pathlib.Path(sys.argv[1])  # the copy, not the checkout
+if sys.argv[2] == "edit":  # a save after the import: the running code is the code as imported
+    units = pathlib.Path(sys.argv[1]) / "units.py"
+    units.write_text(units.read_text() + "\\n# saved while a process ran\\n")
+with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    print(json.dumps({"key": cache.code_fingerprint(), "warned": [str(w.message) for w in caught]}))
+"""
+
+
+def test_mbcal_source_saved_after_its_import_keeps_the_process_out_of_the_shared_cache(tmp_path):
+    """The programs' key holds a hash of mbcal's source, read at first use: a file saved after the
+    import (an edit beside a running notebook, an upgrade under a long process) filed the old code's
+    programs under the new code's name.  Such a process now gets a key of its own, and says so."""
+    shutil.copytree(ROOT / "mbcal", tmp_path / "mbcal", ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copytree(ROOT / "grammar", tmp_path / "grammar")
+    env = {**os.environ, "PYTHONPATH": str(tmp_path)}
+
+    def run(mode):
+        proc = subprocess.run(
+            [sys.executable, "-c", SOURCE_EDIT, str(tmp_path / "mbcal"), mode],
+            cwd=tmp_path,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+        assert proc.returncode == 0, proc.stderr
+        return json.loads(proc.stdout.strip().splitlines()[-1])
+
+    plain = run("plain")
+    assert run("plain") == plain and plain["warned"] == []  # the same code: the same key
+    edited = run("edit")
+    assert edited["key"] != plain["key"] and any("changed since mbcal was imported" in w for w in edited["warned"])
+    after = run("plain")  # the saved code, imported as it is: a key of its own, shared again
+    assert after["warned"] == [] and after["key"] not in (plain["key"], edited["key"]) and run("plain") == after
+    again = run("edit")
+    assert again["key"] not in (edited["key"], after["key"])  # each such process apart
