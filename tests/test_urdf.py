@@ -267,6 +267,32 @@ def small(tmp_path):
     return path
 
 
+def test_the_urdf_is_read_once_and_the_model_is_of_the_bytes_its_key_names(tmp_path, monkeypatch):
+    """lxml and yourdfpy each read the file: saved in between, the model came from the new text
+    and its key (Model.file_digests) from the old one, so a program of one was filed as the other."""
+    import hashlib
+
+    from mbcal.language import files
+
+    path = tmp_path / "arm7.urdf"
+    original = ARM.read_bytes()
+    path.write_bytes(original)
+    read = files.read_bytes
+
+    def read_then_save(p):
+        data = read(p)
+        path.write_bytes(original.replace(b'<origin xyz="0 0 0.12"', b'<origin xyz="0 0 0.52"'))
+        return data
+
+    monkeypatch.setattr(files, "read_bytes", read_then_save)
+    model = load_urdf(path)
+    assert hashlib.sha256(original).hexdigest() in dict(model.file_digests).values()
+    q = readings(np.random.default_rng(8))
+    values = {f"{j}.q": v for j, v in q.items()}
+    names = {link: link.replace("-", "_") for link in LINKS}
+    assert_same_poses(mbcal_fk(model, values, LINKS, names), urdf_fk(ARM, q, LINKS))  # the text as first read
+
+
 def test_prismatic_continuous_and_mimic_joints_and_renamed_names(small):
     model = load_urdf(small)
     assert urdf_names(small)["joint"] == {"joint": "joint_", "spin": "spin", "link": "link_", "follow": "follow"}

@@ -160,8 +160,11 @@ def read_robot(path: str | os.PathLike[str]) -> _Robot:
     if not path.is_file():
         raise UrdfError(f"{path}: URDF file not found")
     try:
+        # Read once: the bytes digested for the programs' key are the bytes both parsers read
+        # (yourdfpy read the file again, and a save in between went unnoticed).
+        data = files.read_bytes(path)
         parser = etree.XMLParser(remove_blank_text=False, resolve_entities=False)
-        tree = etree.parse(io.BytesIO(files.read_bytes(path)), parser, base_url=str(path))
+        tree = etree.parse(io.BytesIO(data), parser, base_url=str(path))
     except etree.XMLSyntaxError as err:
         line, column = err.position or (err.lineno, 1)
         message = f"malformed XML: {err.msg}"
@@ -186,7 +189,11 @@ def read_robot(path: str | os.PathLike[str]) -> _Robot:
 
     try:
         urdf = yourdfpy.URDF.load(
-            str(path), build_scene_graph=False, load_meshes=False, filename_handler=lambda name: name
+            io.BytesIO(data),
+            build_scene_graph=False,
+            load_meshes=False,
+            filename_handler=lambda name: name,
+            mesh_dir=str(path.parent),
         )
     except Exception as err:  # yourdfpy raises KeyError, ValueError, AttributeError, ... on bad input
         detail = f"'{err.args[0]}' is missing" if isinstance(err, KeyError) else str(err)
