@@ -54,22 +54,46 @@ def test_a_value_on_its_limit_is_allowed():
 @pytest.mark.parametrize(
     "text, error, message, column",
     [
-        ("param l = 30 cm limits [1 m, 0 m]", DimensionError, "empty limits [1, 0] for 'l'", 17),
+        ("param l = 30 cm limits [1 m, 0 m]", DimensionError, "empty limits [1 m, 0 m] for 'l'", 17),
         ("param l = 30 cm limits [1 m, 1 m]", DimensionError, "empty limits", 17),
         (
             "param l = 30 cm limits [1 m, 2 m]",
             DimensionError,
-            "the value 0.3 of 'l' lies outside its limits [1, 2]",
+            "the value 30 cm of 'l' lies outside its limits [1 m, 2 m]",
             11,
         ),
         ("param l = 30 cm limits [0 deg, 2 m]", UnitError, "the limits of 'l' are an angle", 25),
         ("param l = 30 cm limits [inf, 2 m]", DimensionError, "the lower limit of 'l' cannot be inf", 25),
         ("param l = 30 cm limits [0, -inf]", DimensionError, "the upper limit of 'l' cannot be -inf", 28),
-        ("param l = 30 cm in [0, 1 m] limits [10 cm, 2 m]", DimensionError, "search range [0, 1] of 'l' reaches", 21),
+        (
+            "param l = 30 cm in [0, 1 m] limits [10 cm, 2 m]",
+            DimensionError,
+            "search range [0 m, 1 m] of 'l' reaches",
+            21,
+        ),
         ("param f = 800 in [600, 1000] bounded limits [0, 1]", MdlError, "both 'bounded' and 'limits", 38),
         ("param f = 8 in [6, 6] bounded", DimensionError, "'f' is bounded by an empty range", 23),
         ("param a = 1 limits [0, b]\nparam b = 2", MdlError, "", 1),
-        ("param l = 30 cm limits [0, 1 m]\noverride l = 2 m", DimensionError, "the override 2 of 'l' lies outside", 14),
+        (
+            "param l = 30 cm limits [0, 1 m]\noverride l = 2 m",
+            DimensionError,
+            "the override 2 m of 'l' lies outside",
+            14,
+        ),
+        # in the units written (the SI numbers alone confused: 1.74533 for 100 deg)
+        (
+            "param a = 100 deg limits [-60 deg, 60 deg]",
+            DimensionError,
+            "value 100 deg of 'a' lies outside its limits [-60 deg, 60 deg]",
+            11,
+        ),
+        (
+            "param a = 5 mm in [-1 cm, 2 mm] bounded",
+            DimensionError,
+            "value 5 mm of 'a' lies outside its limits [-1 cm, 2 mm]",
+            11,
+        ),
+        ("param a = 2 limits [-inf, 1]", DimensionError, "value 2 of 'a' lies outside its limits [-inf, 1]", 11),
     ],
 )
 def test_limit_errors_are_located(text, error, message, column):

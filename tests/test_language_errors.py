@@ -133,7 +133,7 @@ GOLDEN = {
     "empty_search_range": (
         "param a = 0 m in [1 m, -1 m]\n",
         errors.DimensionError,
-        "model.mdl:1:19: empty search range [1, -1] for 'a' (lower bound above upper)",
+        "model.mdl:1:19: empty search range [1 m, -1 m] for 'a' (lower bound above upper)",
     ),
     "reserved_word_as_name": (
         "frame at { }\n",

@@ -14,7 +14,7 @@ import math
 from mbcal.errors import DimensionError, MdlError, UndefinedNameError, UnitError, suggest
 from mbcal.language import ast
 from mbcal.language.arguments import bind
-from mbcal.language.expressions import Compiler, literal_unit
+from mbcal.language.expressions import Compiler, literal_unit, shown_limits, written
 from mbcal.language.graph import VECTOR, Const
 from mbcal.language.model import (
     CameraInfo,
@@ -134,8 +134,8 @@ def _apply_overrides(c: Compiler, names: Namespace) -> None:
         lo, hi = info.limit_lower, info.limit_upper
         if (lo is not None and value.value < lo) or (hi is not None and value.value > hi):
             raise DimensionError(
-                f"the override {float(value.value):g} of '{name}' lies outside its limits "
-                f"[{'-inf' if lo is None else f'{lo:g}'}, {'inf' if hi is None else f'{hi:g}'}]",
+                f"the override {written(float(value.value), stmt.value, info.dim)} of '{name}' lies outside its "
+                f"limits {shown_limits(lo, hi, decl.stmt, info.dim)}",
                 stmt.value.span,
             )
         sigma = info.sigma

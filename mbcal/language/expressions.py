@@ -34,7 +34,7 @@ from mbcal.language.graph import (
 from mbcal.language.ir import make_op
 from mbcal.language.model import ParamInfo
 from mbcal.language.scope import Lazy, Namespace, ParamDecl, Scope
-from mbcal.units import DIMENSIONLESS, LENGTH, UNITS, Dim, describe, fits, unify
+from mbcal.units import ANGLE, DIMENSIONLESS, LENGTH, UNITS, Dim, describe, fits, unify
 
 __all__ = ["Compiler", "AXES", "literal_unit"]
 
@@ -148,8 +148,9 @@ class Compiler:
             if value.kind != SCALAR:
                 raise MdlTypeError(f"a parameter is a number, got a {value.kind}", stmt.value.span)
             if lower is not None and upper is not None and not lower <= upper:
+                shown = f"[{written(lower, stmt.lower, dim)}, {written(upper, stmt.upper, dim)}]"
                 raise DimensionError(
-                    f"empty search range [{lower:g}, {upper:g}] for '{decl.name}' (lower bound above upper)",
+                    f"empty search range {shown} for '{decl.name}' (lower bound above upper)",
                     stmt.lower.span if stmt.lower else stmt.span,
                 )
             if not math.isfinite(nominal):
@@ -191,7 +192,8 @@ class Compiler:
         if stmt.bounded:
             assert lower is not None and upper is not None  # the grammar puts 'bounded' after a range
             if not lower < upper:
-                raise DimensionError(f"'{decl.name}' is bounded by an empty range [{lower:g}, {upper:g}]", where)
+                shown = f"[{written(lower, stmt.lower, dim)}, {written(upper, stmt.upper, dim)}]"
+                raise DimensionError(f"'{decl.name}' is bounded by an empty range {shown}", where)
             limits: tuple[float | None, float | None] = (lower, upper)
         elif stmt.limit_lower is not None and stmt.limit_upper is not None:
             ends: list[float | None] = []
@@ -220,23 +222,25 @@ class Compiler:
                 ends.append(value)
             limits = (ends[0], ends[1])
             if limits[0] is not None and limits[1] is not None and not limits[0] < limits[1]:
+                shown = f"[{written(limits[0], stmt.limit_lower, dim)}, {written(limits[1], stmt.limit_upper, dim)}]"
                 raise DimensionError(
-                    f"empty limits [{limits[0]:g}, {limits[1]:g}] for '{decl.name}' (the lower limit must be "
-                    "below the upper)",
+                    f"empty limits {shown} for '{decl.name}' (the lower limit must be below the upper)",
                     where,
                 )
         else:
             return (None, None), dim
         lo = -math.inf if limits[0] is None else limits[0]
         hi = math.inf if limits[1] is None else limits[1]
+        shown = shown_limits(lo, hi, stmt, dim)
         if not lo <= nominal <= hi:
             raise DimensionError(
-                f"the value {nominal:g} of '{decl.name}' lies outside its limits [{lo:g}, {hi:g}]",
+                f"the value {written(nominal, stmt.value, dim)} of '{decl.name}' lies outside its limits {shown}",
                 stmt.value.span if stmt.value is not None else where,
             )
         if lower is not None and upper is not None and not (lo <= lower and upper <= hi):
             raise DimensionError(
-                f"the search range [{lower:g}, {upper:g}] of '{decl.name}' reaches outside its limits [{lo:g}, {hi:g}]",
+                f"the search range [{written(lower, stmt.lower, dim)}, {written(upper, stmt.upper, dim)}] of "
+                f"'{decl.name}' reaches outside its limits {shown}",
                 stmt.lower.span if stmt.lower is not None else where,
                 hint="random starts are drawn inside both: make the search range part of the limits",
             )
@@ -482,6 +486,28 @@ class _Call:
 
     def op(self, name: str, args: Sequence[Node], kind: str, dim: Dim | None, size: int = 0) -> Node:
         return make_op(name, args, kind, dim, size, self.span)
+
+
+def shown_limits(lo: float | None, hi: float | None, stmt: ast.Param, dim: Dim | None) -> str:
+    """A parameter's hard limits for messages, as its declaration wrote them: ``[-60 deg, 60 deg]``."""
+    written_lo, written_hi = (stmt.lower, stmt.upper) if stmt.bounded else (stmt.limit_lower, stmt.limit_upper)
+    lo = -math.inf if lo is None else lo
+    hi = math.inf if hi is None else hi
+    return f"[{written(lo, written_lo, dim)}, {written(hi, written_hi, dim)}]"
+
+
+def written(value: float, expr: ast.Expr | None, dim: Dim | None) -> str:
+    """``value`` (SI) as the model wrote it, for messages: in the unit of its literal (``-60 deg``,
+    ``5 cm``), else in SI with the unit of its dimension (``0.3 m``, ``1.0472 rad``).  Messages
+    gave the SI numbers alone ("the value 1.74533 of 'a' lies outside its limits [-1.0472,
+    1.0472]" for ``100 deg limits [-60 deg, 60 deg]``)."""
+    if math.isinf(value):
+        return "inf" if value > 0 else "-inf"
+    unit = literal_unit(expr)
+    if unit in UNITS:
+        return f"{value / UNITS[unit][0]:g} {unit}"
+    si = {LENGTH: "m", ANGLE: "rad"}.get(dim) if dim is not None else None
+    return f"{value:g} {si}" if si else f"{value:g}"
 
 
 def literal_unit(expr: ast.Expr | None) -> str | None:
