@@ -621,13 +621,19 @@ class OrientationSteps:
         rotated = sm.matmul3(R0, sm.rotation_vector(self._angles(d)))
         return self._placed(jnp, x + d, _rpy_nearest(rotated, previous))
 
-    def represent(self, x: np.ndarray, reference: np.ndarray) -> np.ndarray:
-        """x (restarts × n) with each orientation's angles rewritten as the equivalent ones nearest
-        ``reference`` (each restart's start): the other branch (r + π, π − p, y + π) or other
-        multiples of 2π when they are nearer.  The orientation itself does not change.  NumPy,
-        after the solve (in the compiled program it cost ~0.05 s of every first call)."""
+    def represent(self, x: Array, reference: Array) -> Array:
+        """x with each orientation's angles rewritten as the equivalent ones nearest ``reference``
+        (the restart's start): the other branch (r + π, π − p, y + π) or other multiples of 2π
+        when they are nearer.  The orientation itself does not change."""
+        return self._placed(jnp, x, _equivalent_nearest(jnp, self._angles(x), self._angles(reference)))
+
+    def represent_after(self, x: np.ndarray, reference: np.ndarray) -> np.ndarray:
+        """:meth:`represent` in NumPy, of every restart (rows of x and reference) at once: the
+        solver calls it after the solve (in the compiled program it cost ~0.05 s of every first
+        call).  Non-finite values give NaN, silently, as in the program."""
         x, reference = np.asarray(x, dtype=float), np.asarray(reference, dtype=float)
-        return self._placed(np, x, _equivalent_nearest(np, self._angles(x), self._angles(reference)))
+        with np.errstate(invalid="ignore", over="ignore"):
+            return self._placed(np, x, _equivalent_nearest(np, self._angles(x), self._angles(reference)))
 
 
 def _rpy_nearest(R: tuple, previous: tuple) -> tuple:

@@ -300,9 +300,14 @@ class LeastSquaresResult:
 class LocalParameterisation(Protocol):
     """Local coordinates for the solver's steps (a manifold step, as in Ceres and jaxlie).
 
-    The solver linearises ``r(x ⊞ d)`` in d at d = 0 and moves to ``x ⊞ δ``.  Both methods are
+    The solver linearises ``r(x ⊞ d)`` in d at d = 0 and moves to ``x ⊞ δ``.  The methods are
     traced with JAX; an object is compiled once per identity (keep the same object between
     calls).  :class:`mbcal.problem.Problem` provides one for roll-pitch-yaw orientations.
+
+    Optional: ``represent_after(x, reference)``, :meth:`represent` on NumPy arrays of all restarts
+    at once — x and reference (restarts, n), each restart's result and its start — returning the
+    same shape.  When an object has it, the solver calls it once after the solve instead of
+    tracing :meth:`represent` into its program (a shorter compile: issue 16).
     """
 
     def residual(self, x: Array, d: Array, *args: Array) -> Array:
@@ -316,11 +321,9 @@ class LocalParameterisation(Protocol):
         """x ⊞ d: the point reached by the step d from x (x ⊞ 0 = x)."""
         ...
 
-    def represent(self, x: np.ndarray, reference: np.ndarray) -> np.ndarray:
-        """The coordinates of the same points nearest ``reference`` (where one point has several,
-        as angles do): x and reference are (restarts, n) NumPy arrays, each restart's result and
-        its start.  Applied once after the solve, outside the compiled program (write it with
-        NumPy)."""
+    def represent(self, x: Array, reference: Array) -> Array:
+        """The coordinates of the same point nearest ``reference`` (where one point has several,
+        as angles do); applied to each restart's result with its start as the reference."""
         ...
 
 
@@ -670,17 +673,19 @@ def _lm_batch(
         rn = jnp.sqrt(jnp.sum(final.rw * final.rw))
         return active_at_end(final.x, g, jnp.sqrt(jnp.diag(A)), rn, bounds[0], bounds[1], config.gtol)
 
-    def finish(final: _LMState) -> tuple:
+    def finish(final: _LMState, x0: Array) -> tuple:
         # The running cost accumulates exact changes; report the cost of the final residual itself.
         cost = jnp.where(
             final.status == Status.NON_FINITE, jnp.inf, robust_system(loss, scale, final.r, jnp.zeros((m, 1)))[0]
         )
+        if local is not None and represented_in_program(local):
+            final = final._replace(x=local.represent(final.x, x0))
         if bounds is None:
             return final.x, cost, final.status, final.it
         return final.x, cost, final.status, final.it, final_active(final)
 
     final = restart_loop(cond, body, jax.vmap(start)(x0s))
-    return jax.vmap(finish)(final)
+    return jax.vmap(finish)(final, x0s)
 
 
 class _Identity:
@@ -698,6 +703,25 @@ class _Identity:
         return isinstance(other, _Identity) and other.obj is self.obj
 
 
+def represented_in_program(local: LocalParameterisation | None) -> bool:
+    """Whether ``local.represent`` is traced into the solver's program (it has no ``represent_after``)."""
+    return local is not None and not hasattr(local, "represent_after")
+
+
+def represented_after(local: LocalParameterisation | None, x: np.ndarray, x0: np.ndarray) -> np.ndarray:
+    """The results ``x`` (restarts, n) through ``local.represent_after``, when it has one."""
+    if local is None or represented_in_program(local):
+        return x
+    after: Callable[[np.ndarray, np.ndarray], Any] = local.represent_after  # type: ignore[attr-defined]
+    out = np.asarray(after(x, x0), dtype=np.float64)
+    if out.shape != x.shape:
+        raise SolverError(
+            f"{type(local).__name__}.represent_after returned shape {out.shape} for results of shape {x.shape}",
+            hint="it takes and returns every restart's result at once, one row each",
+        )
+    return out
+
+
 class _StagedLocal:
     """A local parameterisation whose residual is a staged program (:mod:`mbcal.staging`): it takes
     the recipe's inputs in place of the residual's arguments."""
@@ -711,8 +735,12 @@ class _StagedLocal:
     def plus(self, x: Array, d: Array) -> Array:
         return self._local.plus(x, d)
 
-    def represent(self, x: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    def represent(self, x: Array, reference: Array) -> Array:
         return self._local.represent(x, reference)
+
+    @property
+    def represent_after(self) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+        return self._local.represent_after  # type: ignore[attr-defined]  # AttributeError: it has none
 
 
 @functools.lru_cache(maxsize=8)
@@ -847,8 +875,7 @@ def least_squares(
         return least_squares(fun, x0, args=args, config=config, size=size, bounds=bounds, local=local)
     x, cost, status, it = (np.asarray(v) for v in out[:4])
     active = np.asarray(out[4]) if limits is not None else None
-    if local is not None:  # each result in the coordinates nearest its start
-        x = local.represent(x, x0)
+    x = represented_after(local, x, x0)
     finite = np.isfinite(cost)
     best = int(np.argmin(np.where(finite, cost, np.inf))) if finite.any() else -1
     return LeastSquaresResult(

@@ -77,6 +77,8 @@ from mbcal.solver import (
     hard_limits,
     marquardt_trial,
     projected,
+    represented_after,
+    represented_in_program,
     restart_loop,
     robust_system,
     step_status,
@@ -530,21 +532,22 @@ def _lm_structured(
         x_try = jnp.where(finite_step, x_next, x)
         return _State(x, r, rw, Jw, cost, x_try, predicted, lam, nu, Db, Ds, it, status.astype(jnp.int32))
 
-    def finish(final: _State) -> tuple:
+    def finish(final: _State, x0: Array) -> tuple:
         total = robust_system(loss, scale, final.r, jnp.zeros((m, 1)))[0]
         cost = jnp.where(final.status == Status.NON_FINITE, jnp.inf, total)
+        x = local.represent(final.x, x0) if local is not None and represented_in_program(local) else final.x
         if bounds is None:
-            return final.x, cost, final.status, final.it
+            return x, cost, final.status, final.it
         N = unpack(final.Jw)
         col = jnp.zeros(n).at[ix.blocks].set(jnp.diagonal(N.U, axis1=1, axis2=2))
         col = jnp.sqrt(col.at[ix.shared].set(jnp.diagonal(N.V, axis1=1, axis2=2)))
         g = jnp.zeros(n).at[ix.blocks].set(N.gb).at[ix.shared].set(N.gs)
         rn = jnp.sqrt(jnp.sum(final.rw * final.rw))
         active = active_at_end(final.x, g, col, rn, bounds[0], bounds[1], config.gtol)
-        return final.x, cost, final.status, final.it, active
+        return x, cost, final.status, final.it, active
 
     final = restart_loop(lambda s: s.status == 0, body, jax.vmap(start)(x0s))
-    return jax.vmap(finish)(final)
+    return jax.vmap(finish)(final, x0s)
 
 
 # Few programs, as in mbcal.solver: each compiled program holds hundreds of XLA's memory maps, and a
@@ -619,8 +622,7 @@ def least_squares_structured(
     x, cost, status, it = (np.asarray(v) for v in out[:4])
     active = np.asarray(out[4]) if limits is not None else None
     del out
-    if local is not None:  # each result in the coordinates nearest its start
-        x = local.represent(x, x0)
+    x = represented_after(local, x, x0)
     release_memory(8 * structure.m * (structure.nb + structure.ks) * len(x0))  # the program's m × c buffers
     finite = np.isfinite(cost)
     best = int(np.argmin(np.where(finite, cost, np.inf))) if finite.any() else -1

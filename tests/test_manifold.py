@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 import mbcal
+from mbcal.errors import SolverError
 from mbcal.modeling import rpy_triples
 from mbcal.problem import Problem
 from mbcal.solver import SolverConfig, least_squares
@@ -217,27 +218,75 @@ def test_the_step_rotates_about_the_current_orientation(room, room_data, angles)
         assert np.all(np.abs(moved[idx] - x[idx]) < math.pi + 0.5)  # angles move continuously (mod 2π)
 
 
-def test_results_are_written_in_the_angles_nearest_their_starts(room, room_data):
-    """represent (NumPy, after the solve): the other branch (r + π, π − p, y + π) and other multiples
-    of 2π are rewritten as the equivalent angles nearest each restart's start; nothing else moves."""
-    problem = Problem(room, room_data, ["room.*"])
+@pytest.mark.parametrize("which", ["room", "per_view"])
+def test_results_are_written_in_the_angles_nearest_their_starts(room, room_data, per_view, which):
+    """represent_after (NumPy, all restarts after the solve) and represent (traced, one restart):
+    the other branch (r + π, π − p, y + π) and other multiples of 2π are rewritten as the
+    equivalent angles nearest each restart's start; nothing else moves.  Two orientations
+    (per_view) place each rotation's angles at its own positions."""
+    problem = Problem(room, room_data, ["room.*"]) if which == "room" else per_view[2]
     names = problem.params.names
-    idx = [names.index(a) for a in ANGLES]
+    triples = [[names.index(a) for a in triple] for triple in problem.orientation_names]
+    idx = [i for triple in triples for i in triple]
     rng = np.random.default_rng(4)
     starts = np.tile(problem.params.x0, (5, 1)) + rng.normal(scale=0.01, size=(5, len(names)))
-    starts[:, idx] = rng.uniform(-3.0, 3.0, size=(5, 3))
-    k = rng.choice([-2, -1, 1, 2], size=(5, 3)) * 2.0 * np.pi  # whole turns, none zero
+    starts[:, idx] = rng.uniform(-3.0, 3.0, size=(5, len(idx)))
     moved = starts.copy()
-    r, p, y = starts[:, idx].T
-    moved[:, idx] = np.stack([r + np.pi, np.pi - p, y + np.pi], axis=1) + k  # the same rotations
-    moved[0, idx] = starts[0, idx] + k[0]  # the same branch, other turns
-    out = problem.local.represent(moved, starts)
+    for t in triples:
+        k = rng.choice([-2, -1, 1, 2], size=(5, 3)) * 2.0 * np.pi  # whole turns, none zero
+        r, p, y = starts[:, t].T
+        moved[:, t] = np.stack([r + np.pi, np.pi - p, y + np.pi], axis=1) + k  # the same rotations
+        moved[0, t] = starts[0, t] + k[0]  # the same branch, other turns
+    out = problem.local.represent_after(moved, starts)
     assert out.shape == moved.shape and np.all(out[:, idx] != moved[:, idx])
     np.testing.assert_allclose(out[:, idx], starts[:, idx], atol=1e-12)
     others = [i for i in range(len(names)) if i not in idx]
     np.testing.assert_array_equal(out[:, others], moved[:, others])
     for row, before in zip(out, moved):
-        np.testing.assert_allclose(rotation(*row[idx]), rotation(*before[idx]), atol=1e-12)
+        for t in triples:
+            np.testing.assert_allclose(rotation(*row[t]), rotation(*before[t]), atol=1e-12)
+    traced = jax.jit(jax.vmap(problem.local.represent))(jnp.asarray(moved), jnp.asarray(starts))
+    np.testing.assert_allclose(np.asarray(traced), out, rtol=0, atol=1e-15)
+    with np.errstate(all="raise"):  # a non-finite result gives NaN, without a warning
+        bad = moved.copy()
+        bad[1, idx[0]] = np.inf
+        assert np.isnan(problem.local.represent_after(bad, starts)[1, idx[0]])
+
+
+class Wrapped:
+    """A user's local parameterisation of an angle, without represent_after: its represent is
+    traced into the solver's program, one restart at a time (the protocol's first form)."""
+
+    def residual(self, x, d, *args):
+        return circle(x + d)
+
+    def plus(self, x, d):
+        return x + d
+
+    def represent(self, x, reference):
+        turns = jnp.round((x[0] - reference[0]) / (2.0 * np.pi))
+        return x.at[0].set(x[0] - 2.0 * np.pi * turns)
+
+
+def circle(x):
+    return jnp.stack([jnp.cos(x[0]) - np.cos(0.7), jnp.sin(x[0]) - np.sin(0.7), x[1] - 7.0])
+
+
+def test_a_local_parameterisation_without_represent_after_is_represented_in_the_program():
+    starts = np.array([[0.5 + 4.0 * np.pi, 0.0], [1.0, 1.0]])
+    solved = least_squares(circle, starts, local=Wrapped())
+    assert isinstance(solved.x, np.ndarray) and solved.x.shape == (2, 2)
+    np.testing.assert_allclose(solved.x[:, 0], [0.7 + 4.0 * np.pi, 0.7], atol=1e-9)  # each nearest its start
+    np.testing.assert_allclose(solved.x[:, 1], [7.0, 7.0], atol=1e-9)  # the other unknown untouched
+
+
+def test_represent_after_must_give_every_restart_back():
+    class Flat(Wrapped):
+        def represent_after(self, x, reference):
+            return x[0]  # one row, not every restart's
+
+    with pytest.raises(SolverError, match=r"represent_after returned shape \(2,\) for results of shape \(2, 2\)"):
+        least_squares(circle, np.array([[0.5, 0.0], [1.0, 1.0]]), local=Flat())
 
 
 # ---- the 89.9° case ------------------------------------------------------------------------------------
