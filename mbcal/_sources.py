@@ -4,9 +4,11 @@ A compiled program saved to the cache (:mod:`mbcal.cache`) is keyed by a hash of
 (:func:`mbcal.cache.code_fingerprint`), read when a process first asks for it.  A file saved
 after mbcal was imported (a developer's edit in a running notebook, ``pip install -U`` under a
 long process) is not the code that runs: that hash would file the old code's programs under the
-new code's name.  mbcal's package ``__init__`` records here each source file's modification time
-and size (stat calls only: ~1 ms, no file read), and the cache asks :func:`changed` before it
-trusts its hash.  Standard library only: imported by ``import mbcal``.
+new code's name (and a module imported after such a save runs code the hash never read).
+mbcal's package ``__init__`` records here each source file's modification time and size (stat
+calls only: ~1 ms, no file read), and :func:`mbcal.cache.source_edited` asks :func:`changed`
+before programs or parsed files are loaded from the cache or saved to it.  Standard library only:
+imported by ``import mbcal``.
 """
 
 from __future__ import annotations

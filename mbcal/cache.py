@@ -43,6 +43,7 @@ import os
 import re
 import sys
 import threading
+import time
 import warnings
 import weakref
 from collections import OrderedDict
@@ -70,6 +71,7 @@ __all__ = [
     "enable_compilation_cache",
     "exported",
     "code_fingerprint",
+    "source_edited",
     "Hasher",
     "ProgramCache",
     "PROGRAMS",
@@ -335,12 +337,9 @@ def enable_compilation_cache() -> Path | None:
 
 @functools.lru_cache(maxsize=1)
 def code_fingerprint() -> str:
-    """A hash of mbcal's own source: a new mbcal never reuses an old exported program.
-
-    Read at the first call; when a source file was saved since mbcal was imported
-    (:mod:`mbcal._sources`), what is read is not what runs, and the hash is made unique to this
-    process (with a warning): its programs are neither taken from the cache nor found there by
-    another process."""
+    """A hash of mbcal's own source: a new mbcal never reuses an old exported program.  (Read at
+    the first call; the files' being what runs is checked where programs are loaded and saved:
+    :func:`source_edited`.)"""
     h = hashlib.sha256()
     root = package_root()
     for path in sorted(root.rglob("*.py")):
@@ -352,14 +351,40 @@ def code_fingerprint() -> str:
     from mbcal._jax import jax
 
     h.update(jax.__version__.encode())
-    if _sources.changed():  # after the read: a save while it read counts too
-        warnings.warn(
-            "mbcal's source files changed since mbcal was imported: this process runs the code as it "
-            "was then, so its compiled programs are kept out of the shared cache (restart Python to use it)",
-            stacklevel=2,
-        )
-        h.update(os.urandom(16))
     return h.hexdigest()
+
+
+_SOURCE_LOCK = threading.Lock()
+_SOURCE_CHECK: dict[str, Any] = {"modules": -1, "at": -math.inf, "edited": False}
+
+
+def source_edited() -> bool:
+    """Whether one of mbcal's source files was saved, added or removed since ``import mbcal``
+    (:mod:`mbcal._sources`): the code that runs is then not the code the cache's keys hash (an
+    edit beside a running notebook, an upgrade under a long process, a module imported or
+    reloaded after the edit), and the caches of programs and parsed files are neither read nor
+    written for the rest of the process (said once, as a warning).
+
+    Asked before each load or save.  The files are looked at (a stat each, ~1 ms) when modules
+    were imported since the last look, else at most once a second."""
+    with _SOURCE_LOCK:
+        state = _SOURCE_CHECK
+        if state["edited"]:
+            return True
+        now, modules = time.monotonic(), len(sys.modules)
+        if modules == state["modules"] and now - state["at"] < 1.0:
+            return False
+        state["modules"], state["at"] = modules, now
+        if not _sources.changed():
+            return False
+        state["edited"] = True
+    warnings.warn(
+        "mbcal's source files changed since mbcal was imported: this process runs the code as it was "
+        "then, so it neither reads nor writes the cache of compiled programs and parsed files "
+        "(restart Python to use it)",
+        stacklevel=3,
+    )
+    return True
 
 
 # Digests of the classes' sources, taken once per class: the code that runs is the code that was
@@ -456,7 +481,7 @@ def recipe_path(key: str) -> Path | None:
     """Where the persistent cache keeps the recipe of an exported program's inputs
     (:mod:`mbcal.staging`), None without a cache: beside the program, trimmed with it."""
     folder = cache_dir()
-    return None if folder is None else folder / "exports" / f"{key}.recipe.json"
+    return None if folder is None or source_edited() else folder / "exports" / f"{key}.recipe.json"
 
 
 def exported(key: str, jitted: Callable, *example: Any, keep: bool = True) -> Callable:
@@ -468,7 +493,7 @@ def exported(key: str, jitted: Callable, *example: Any, keep: bool = True) -> Ca
     loaded program in this process (a small LRU); False when the caller keeps it itself.
     """
     folder = cache_dir()
-    if folder is None:
+    if folder is None or source_edited():
         return jitted
     export = _export_module()
     if export is None:

@@ -212,28 +212,43 @@ def test_a_gltf_buffer_is_part_of_the_fingerprint(tmp_path, monkeypatch):
 
 
 SOURCE_EDIT = """
-import json, pathlib, sys, warnings
+import json, os, pathlib, sys, warnings
+import numpy as np
 import mbcal
 from mbcal import cache
-assert pathlib.Path(mbcal.__file__).parent == pathlib.Path(sys.argv[1])  # the copy, not the checkout
-if sys.argv[2] == "edit":  # a save after the import: the running code is the code as imported
-    units = pathlib.Path(sys.argv[1]) / "units.py"
-    units.write_text(units.read_text() + "\\n# saved while a process ran\\n")
+root = pathlib.Path(sys.argv[1])
+assert pathlib.Path(mbcal.__file__).parent == root  # the copy, not the checkout
 with warnings.catch_warnings(record=True) as caught:
     warnings.simplefilter("always")
-    print(json.dumps({"key": cache.code_fingerprint(), "warned": [str(w.message) for w in caught]}))
+    key = cache.code_fingerprint()  # read before the edit, the programs' key is the old code's
+    if sys.argv[2] == "edit":  # saved after the import and after the key: the next import runs it
+        solver = root / "solver.py"
+        solver.write_text(solver.read_text() + "\\n# saved while a process ran\\n")
+    import mbcal.solver  # noqa: F401
+    from mbcal._jax import jit, jnp
+    program = cache.exported("a" * 64, jit(lambda x: jnp.sin(x) * 2.0), np.zeros(3))
+    assert np.allclose(np.asarray(program(np.full(3, 0.5))), 2.0 * np.sin(0.5))
+    (root.parent / "m.mdl").write_text("param a = 1 m\\n")
+    mbcal.load_model(root.parent / "m.mdl")
+folder = pathlib.Path(os.environ["MBCAL_CACHE_DIR"])
+print(json.dumps({"key": key, "exports": sorted(p.name for p in (folder / "exports").glob("*")),
+                  "syntax": len(list((folder / "syntax").glob("*.json"))),
+                  "warned": [str(w.message) for w in caught]}))
 """
 
 
 def test_mbcal_source_saved_after_its_import_keeps_the_process_out_of_the_shared_cache(tmp_path):
     """The programs' key holds a hash of mbcal's source, read at first use: a file saved after the
-    import (an edit beside a running notebook, an upgrade under a long process) filed the old code's
-    programs under the new code's name.  Such a process now gets a key of its own, and says so."""
+    import (an edit beside a running notebook, an upgrade under a long process) and a module
+    imported after that ran the new code under the old code's key, so the next process took the
+    program of the code it does not run.  Such a process now neither reads nor writes the caches
+    of programs and parsed files, and says so."""
     shutil.copytree(ROOT / "mbcal", tmp_path / "mbcal", ignore=shutil.ignore_patterns("__pycache__"))
     shutil.copytree(ROOT / "grammar", tmp_path / "grammar")
-    env = {**os.environ, "PYTHONPATH": str(tmp_path)}
 
-    def run(mode):
+    def run(mode, cache):
+        env = {**os.environ, "PYTHONPATH": str(tmp_path), "MBCAL_CACHE_DIR": str(tmp_path / cache)}
+        env.pop("MBCAL_CACHE", None)
         proc = subprocess.run(
             [sys.executable, "-c", SOURCE_EDIT, str(tmp_path / "mbcal"), mode],
             cwd=tmp_path,
@@ -245,11 +260,11 @@ def test_mbcal_source_saved_after_its_import_keeps_the_process_out_of_the_shared
         assert proc.returncode == 0, proc.stderr
         return json.loads(proc.stdout.strip().splitlines()[-1])
 
-    plain = run("plain")
-    assert run("plain") == plain and plain["warned"] == []  # the same code: the same key
-    edited = run("edit")
-    assert edited["key"] != plain["key"] and any("changed since mbcal was imported" in w for w in edited["warned"])
-    after = run("plain")  # the saved code, imported as it is: a key of its own, shared again
-    assert after["warned"] == [] and after["key"] not in (plain["key"], edited["key"]) and run("plain") == after
-    again = run("edit")
-    assert again["key"] not in (edited["key"], after["key"])  # each such process apart
+    plain = run("plain", "first")
+    assert plain["warned"] == [] and plain["exports"] == ["a" * 64 + ".jaxexport"] and plain["syntax"] == 1
+    edited = run("edit", "second")
+    assert edited["key"] == plain["key"]  # the key was read before the save: only the check can tell
+    assert edited["exports"] == [] and edited["syntax"] == 0
+    assert sum("changed since mbcal was imported" in w for w in edited["warned"]) == 1
+    after = run("plain", "second")  # the saved code, imported as it is: its own key, the cache again
+    assert after["warned"] == [] and after["key"] != plain["key"] and after["exports"] and after["syntax"] == 1
