@@ -94,6 +94,12 @@ def test_a_value_on_its_limit_is_allowed():
             11,
         ),
         ("param a = 2 limits [-inf, 1]", DimensionError, "value 2 of 'a' lies outside its limits [-inf, 1]", 11),
+        (
+            "param a = 60.00001 deg limits [-60 deg, 60 deg]",
+            DimensionError,
+            "value 60.00001 deg of 'a' lies outside its limits [-60 deg, 60 deg]",
+            11,
+        ),
     ],
 )
 def test_limit_errors_are_located(text, error, message, column):

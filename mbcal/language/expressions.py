@@ -503,11 +503,13 @@ def written(value: float, expr: ast.Expr | None, dim: Dim | None) -> str:
     1.0472]" for ``100 deg limits [-60 deg, 60 deg]``)."""
     if math.isinf(value):
         return "inf" if value > 0 else "-inf"
+    # 12 digits: a value just outside a limit reads so (60.00001 deg, not 60 deg), and the unit's
+    # conversion leaves no trace (59.99999999999999 reads 60)
     unit = literal_unit(expr)
     if unit in UNITS:
-        return f"{value / UNITS[unit][0]:g} {unit}"
+        return f"{value / UNITS[unit][0]:.12g} {unit}"
     si = {LENGTH: "m", ANGLE: "rad"}.get(dim) if dim is not None else None
-    return f"{value:g} {si}" if si else f"{value:g}"
+    return f"{value:.12g} {si}" if si else f"{value:.12g}"
 
 
 def literal_unit(expr: ast.Expr | None) -> str | None:
