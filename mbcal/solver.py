@@ -558,6 +558,7 @@ def _lm_batch(
     m: int,
     bounds: tuple[Array, Array] | None = None,
     local: LocalParameterisation | None = None,
+    represent: bool = True,
 ) -> tuple:
     """Marquardt iterations from each start (rows of ``x0s``); returns (x, cost, status,
     iterations) per start, and with ``bounds`` also the active bounds at the end (−1, 0, +1 per
@@ -678,11 +679,12 @@ def _lm_batch(
         cost = jnp.where(
             final.status == Status.NON_FINITE, jnp.inf, robust_system(loss, scale, final.r, jnp.zeros((m, 1)))[0]
         )
-        if local is not None and represented_in_program(local):
-            final = final._replace(x=local.represent(final.x, x0))
+        # ``represent``: local.represent in the program (else represent_after runs after it); the
+        # active bounds are those of the solver's own x, as by blocks (mbcal.structured)
+        x = local.represent(final.x, x0) if local is not None and represent else final.x
         if bounds is None:
-            return final.x, cost, final.status, final.it
-        return final.x, cost, final.status, final.it, final_active(final)
+            return x, cost, final.status, final.it
+        return x, cost, final.status, final.it, final_active(final)
 
     final = restart_loop(cond, body, jax.vmap(start)(x0s))
     return jax.vmap(finish)(final, x0s)
@@ -708,10 +710,9 @@ def represented_in_program(local: LocalParameterisation | None) -> bool:
     return local is not None and not hasattr(local, "represent_after")
 
 
-def represented_after(local: LocalParameterisation | None, x: np.ndarray, x0: np.ndarray) -> np.ndarray:
-    """The results ``x`` (restarts, n) through ``local.represent_after``, when it has one."""
-    if local is None or represented_in_program(local):
-        return x
+def represented_after(local: LocalParameterisation, x: np.ndarray, x0: np.ndarray) -> np.ndarray:
+    """The results ``x`` (restarts, n) through ``local.represent_after`` (the caller's object: a
+    wrong shape is said in its name)."""
     after: Callable[[np.ndarray, np.ndarray], Any] = local.represent_after  # type: ignore[attr-defined]
     out = np.asarray(after(x, x0), dtype=np.float64)
     if out.shape != x.shape:
@@ -760,6 +761,7 @@ def _compiled(
     size: int | None = None,
     bounded: bool = False,
     wrapped: _Identity | None = None,
+    represent: bool = True,
 ) -> Callable:
     local: LocalParameterisation | None = None if wrapped is None else wrapped.obj
 
@@ -771,13 +773,13 @@ def _compiled(
 
         def batch(x0s, args):
             m = residuals(x0s, args)
-            return _lm_batch(fun, config, x0s, args, m, None, local)
+            return _lm_batch(fun, config, x0s, args, m, None, local, represent)
 
         return jit(batch)
 
     def batch_bounded(x0s, args, lower, upper):
         m = residuals(x0s, args)
-        return _lm_batch(fun, config, x0s, args, m, (lower, upper), local)
+        return _lm_batch(fun, config, x0s, args, m, (lower, upper), local, represent)
 
     return jit(batch_bounded)
 
@@ -834,6 +836,7 @@ def least_squares(
         raise SolverError(f"x0 must be (n,) or (restarts, n) with n ≥ 1, got shape {x0.shape}")
     args = tuple(as_argument(a) for a in args)  # not jnp.asarray: it compiles a program per shape
     local = local if config.manifold else None
+    in_program = represented_in_program(local)  # decided once: the program and what follows it agree
     limits, x0 = hard_limits(bounds, x0)
     key = recipe_key = None
     given = (fun, args, local)
@@ -844,7 +847,7 @@ def least_squares(
         if limits is not None:
             key.add("bounded")
         if local is not None:
-            key.add("local", type(local).__module__, type(local).__qualname__)
+            key.add("local", type(local).__module__, type(local).__qualname__, in_program)
     if args and (local is None or size is not None):
         # What depends on the known arguments only is computed before the program (mbcal.staging).
         # (With local coordinates the solver traces local.residual, and fun only for the size.)
@@ -859,7 +862,7 @@ def least_squares(
                 local = _staged_local(_Identity(local), program_fun)
             if key is not None:
                 key.add("staged", digest)  # the exported program is the one made for this recipe
-    program = _compiled(fun, config, size, limits is not None, local if local is None else _Identity(local))
+    program = _compiled(fun, config, size, limits is not None, local if local is None else _Identity(local), in_program)
     example: tuple[Any, ...] = (x0, args)
     if limits is not None:
         example += limits
@@ -875,7 +878,8 @@ def least_squares(
         return least_squares(fun, x0, args=args, config=config, size=size, bounds=bounds, local=local)
     x, cost, status, it = (np.asarray(v) for v in out[:4])
     active = np.asarray(out[4]) if limits is not None else None
-    x = represented_after(local, x, x0)
+    if given[2] is not None and not in_program:  # each result in the coordinates nearest its start
+        x = represented_after(given[2], x, x0)
     finite = np.isfinite(cost)
     best = int(np.argmin(np.where(finite, cost, np.inf))) if finite.any() else -1
     return LeastSquaresResult(

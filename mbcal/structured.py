@@ -388,6 +388,7 @@ def _lm_structured(
     sizes: tuple[int, int, int, int, int, bool],
     local: LocalParameterisation | None,
     bounds: tuple[Array, Array] | None = None,
+    represent: bool = True,
 ) -> tuple:
     """The Schur-complement Marquardt loop from each start (rows of ``x0s``): (x, cost, status,
     iterations) per start (the restarts run in :func:`mbcal.solver.restart_loop`), and with
@@ -535,7 +536,7 @@ def _lm_structured(
     def finish(final: _State, x0: Array) -> tuple:
         total = robust_system(loss, scale, final.r, jnp.zeros((m, 1)))[0]
         cost = jnp.where(final.status == Status.NON_FINITE, jnp.inf, total)
-        x = local.represent(final.x, x0) if local is not None and represented_in_program(local) else final.x
+        x = local.represent(final.x, x0) if local is not None and represent else final.x  # (or represent_after)
         if bounds is None:
             return x, cost, final.status, final.it
         N = unpack(final.Jw)
@@ -554,18 +555,23 @@ def _lm_structured(
 # long process that kept dozens alive came near the kernel's limit, where XLA:CPU crashes (issue 16).
 @functools.lru_cache(maxsize=8)
 def _compiled(
-    fun: Callable, config: SolverConfig, sizes: tuple[int, ...], wrapped: _Identity | None, bounded: bool = False
+    fun: Callable,
+    config: SolverConfig,
+    sizes: tuple[int, ...],
+    wrapped: _Identity | None,
+    bounded: bool = False,
+    represent: bool = True,
 ) -> Callable:
     local = None if wrapped is None else wrapped.obj
     if not bounded:  # the unbounded program, as it always was
 
         def batch(x0s, args, ix):
-            return _lm_structured(fun, config, x0s, args, _Arrays(*ix), sizes, local)  # type: ignore[arg-type]
+            return _lm_structured(fun, config, x0s, args, _Arrays(*ix), sizes, local, None, represent)  # type: ignore[arg-type]
 
         return jit(batch)
 
     def batch_bounded(x0s, args, ix, lower, upper):
-        return _lm_structured(fun, config, x0s, args, _Arrays(*ix), sizes, local, (lower, upper))  # type: ignore[arg-type]
+        return _lm_structured(fun, config, x0s, args, _Arrays(*ix), sizes, local, (lower, upper), represent)  # type: ignore[arg-type]
 
     return jit(batch_bounded)
 
@@ -603,9 +609,10 @@ def least_squares_structured(
     # each, jnp.asarray compiles a program per shape: issue 16)
     args = tuple(as_argument(a) for a in args)
     local = local if config.manifold else None
+    in_program = represented_in_program(local)  # decided once: the program and what follows it agree
     ix = structure.arrays()
     sizes = (structure.m, structure.n_blocks, structure.n_groups, len(ix["pair_block"]), structure.nb, ix["padded"])
-    program = _compiled(fun, config, sizes, None if local is None else _Identity(local), limits is not None)
+    program = _compiled(fun, config, sizes, None if local is None else _Identity(local), limits is not None, in_program)
     arrays = tuple(ix[name] for name in _Arrays._fields)
     example: tuple[Any, ...] = (x0, args, arrays)
     if limits is not None:
@@ -616,13 +623,14 @@ def least_squares_structured(
         if limits is not None:
             key.add("bounded")
         if local is not None:
-            key.add("local", type(local).__module__, type(local).__qualname__)
+            key.add("local", type(local).__module__, type(local).__qualname__, in_program)
         program = exported(key.hexdigest(), program, *example)
     out = program(*example)
     x, cost, status, it = (np.asarray(v) for v in out[:4])
     active = np.asarray(out[4]) if limits is not None else None
     del out
-    x = represented_after(local, x, x0)
+    if local is not None and not in_program:  # each result in the coordinates nearest its start
+        x = represented_after(local, x, x0)
     release_memory(8 * structure.m * (structure.nb + structure.ks) * len(x0))  # the program's m × c buffers
     finite = np.isfinite(cost)
     best = int(np.argmin(np.where(finite, cost, np.inf))) if finite.any() else -1

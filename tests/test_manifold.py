@@ -280,6 +280,76 @@ def test_a_local_parameterisation_without_represent_after_is_represented_in_the_
     np.testing.assert_allclose(solved.x[:, 1], [7.0, 7.0], atol=1e-9)  # the other unknown untouched
 
 
+class WrappedAfter(Wrapped):
+    """The same, written for all restarts at once in NumPy: the solver calls it after the solve."""
+
+    def represent_after(self, x, reference):
+        x = np.array(x)
+        x[:, 0] -= 2.0 * np.pi * np.round((x[:, 0] - reference[:, 0]) / (2.0 * np.pi))
+        return x
+
+
+def beyond(x):
+    return jnp.stack([x[0] - (np.pi + 0.5), x[1] - 7.0])
+
+
+class Beyond(Wrapped):
+    def residual(self, x, d, *args):
+        return beyond(x + d)
+
+
+class BeyondAfter(WrappedAfter):
+    def residual(self, x, d, *args):
+        return beyond(x + d)
+
+
+@pytest.mark.parametrize("local", [Beyond(), BeyondAfter()], ids=["represent", "represent_after"])
+def test_the_active_bounds_are_of_the_solvers_own_x_whichever_represent(local):
+    """The unknown ends on its upper bound π; represented nearest the start (-3) it reads -π.  The
+    active bound is the one it ended on (+1), in the program or after it, densely or by blocks (the
+    dense program had taken the represented x: none active)."""
+    from mbcal.structured import Structure, least_squares_structured
+
+    bounds = (np.array([-np.pi, -np.inf]), np.array([np.pi, np.inf]))
+    start = np.array([[-3.0, 0.0]])
+    dense = least_squares(beyond, start, bounds=bounds, local=local)
+    structure = Structure(
+        blocks=np.array([[0]]), shared=np.array([[1]]), row_block=np.zeros(2, int), row_group=np.zeros(2, int)
+    )
+    by_blocks = least_squares_structured(beyond, start, structure, bounds=bounds, local=local)
+    for solved in (dense, by_blocks):
+        np.testing.assert_allclose(solved.x[0], [-np.pi, 7.0], atol=1e-9)
+        np.testing.assert_array_equal(solved.active[0], [1, 0])
+
+
+class TurnUp(Wrapped):
+    """Represents every result one turn up (the same angle, other coordinates): seen whenever it runs."""
+
+    def represent(self, x, reference):
+        return x.at[0].add(2.0 * np.pi)
+
+
+def test_an_object_that_gains_or_loses_represent_after_is_represented_either_way():
+    """The compiled programs are kept per object: one made while it had represent_after (no
+    represent inside) must not serve it once it has none (its results came back unrepresented),
+    nor the other way round (represented twice)."""
+    local = TurnUp()
+    starts = np.array([[0.5, 0.0], [1.0, 1.0]])
+    turned = [0.7 + 2.0 * np.pi, 0.7 + 2.0 * np.pi]
+
+    def after(x, reference):
+        x = np.array(x)
+        x[:, 0] += 2.0 * np.pi
+        return x
+
+    local.represent_after = after
+    np.testing.assert_allclose(least_squares(circle, starts, local=local).x[:, 0], turned, atol=1e-9)
+    del local.represent_after
+    np.testing.assert_allclose(least_squares(circle, starts, local=local).x[:, 0], turned, atol=1e-9)
+    local.represent_after = after
+    np.testing.assert_allclose(least_squares(circle, starts, local=local).x[:, 0], turned, atol=1e-9)
+
+
 def test_represent_after_must_give_every_restart_back():
     class Flat(Wrapped):
         def represent_after(self, x, reference):
