@@ -72,6 +72,7 @@ __all__ = [
     "exported",
     "code_fingerprint",
     "source_edited",
+    "SourceEditedWarning",
     "Hasher",
     "ProgramCache",
     "PROGRAMS",
@@ -355,36 +356,48 @@ def code_fingerprint() -> str:
 
 
 _SOURCE_LOCK = threading.Lock()
-_SOURCE_CHECK: dict[str, Any] = {"modules": -1, "at": -math.inf, "edited": False}
+_SOURCE_CHECK: dict[str, Any] = {"modules": -1, "at": -math.inf, "edited": False, "said": False}
 
 
-def source_edited() -> bool:
+def source_edited(*, exact: bool = False) -> bool:
     """Whether one of mbcal's source files was saved, added or removed since ``import mbcal``
     (:mod:`mbcal._sources`): the code that runs is then not the code the cache's keys hash (an
     edit beside a running notebook, an upgrade under a long process, a module imported or
     reloaded after the edit), and the caches of programs and parsed files are neither read nor
-    written for the rest of the process (said once, as a warning).
+    written for the rest of the process.
 
-    Asked before each load or save.  The files are looked at (a stat each, ~1 ms) when modules
-    were imported since the last look, else at most once a second."""
+    Asked before each load, and ``exact`` (looking whatever the time) right before each save:
+    otherwise the files are looked at (a stat each, ~1 ms) when modules were imported since the
+    last look, else at most once a second (a module imported while a program was traced, or one
+    reloaded after an edit, would have slipped through between).  Said once, as a
+    :class:`SourceEditedWarning`, in the main thread (a thread of mbcal's own that saw the change
+    first leaves it to the main thread's next call)."""
     with _SOURCE_LOCK:
         state = _SOURCE_CHECK
-        if state["edited"]:
-            return True
-        now, modules = time.monotonic(), len(sys.modules)
-        if modules == state["modules"] and now - state["at"] < 1.0:
-            return False
-        state["modules"], state["at"] = modules, now
-        if not _sources.changed():
-            return False
-        state["edited"] = True
-    warnings.warn(
-        "mbcal's source files changed since mbcal was imported: this process runs the code as it was "
-        "then, so it neither reads nor writes the cache of compiled programs and parsed files "
-        "(restart Python to use it)",
-        stacklevel=3,
-    )
+        if not state["edited"]:
+            now, modules = time.monotonic(), len(sys.modules)
+            if not exact and modules == state["modules"] and now - state["at"] < 1.0:
+                return False
+            state["modules"], state["at"] = modules, now
+            if not _sources.changed():
+                return False
+            state["edited"] = True
+        say = not state["said"] and threading.current_thread() is threading.main_thread()
+        state["said"] = state["said"] or say
+    if say:
+        warnings.warn(
+            "mbcal's source files changed since mbcal was imported: this process runs the code as it "
+            "was then, so it neither reads nor writes the cache of compiled programs and parsed files "
+            "(restart Python to use it)",
+            SourceEditedWarning,
+            stacklevel=3,
+        )
     return True
+
+
+class SourceEditedWarning(UserWarning):
+    """mbcal's source changed under a running process: its caches of programs and parsed files are
+    bypassed from then on (:func:`source_edited`)."""
 
 
 # Digests of the classes' sources, taken once per class: the code that runs is the code that was
@@ -520,9 +533,10 @@ def _load_or_export(export: Any, folder: Path, key: str, jitted: Callable, examp
         with gc_paused():  # tracing and lowering: see gc_paused
             program = export.export(jitted)(*example)  # type: ignore[arg-type]  # a jax.jit result; stub wants jax.stages.Wrapped
         try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            atomic_write(path, bytes(program.serialize()))
-            trim_programs(folder, limit, keep=path)
+            if not source_edited(exact=True):  # a module imported while it traced counts too
+                path.parent.mkdir(parents=True, exist_ok=True)
+                atomic_write(path, bytes(program.serialize()))
+                trim_programs(folder, limit, keep=path)
         except OSError:
             pass  # a read-only cache: still correct, only slower next time
     from mbcal._jax import jit

@@ -36,7 +36,7 @@ import numpy as np
 from jax.extend import core as jcore
 
 from mbcal._jax import jax
-from mbcal.cache import recipe_path
+from mbcal.cache import recipe_path, source_edited
 from mbcal.outputs import atomic_write
 
 __all__ = ["NUMPY", "Prepared", "Recipe", "Split", "StaleRecipeError", "forget", "prepare", "split"]
@@ -538,7 +538,7 @@ def prepare(
         except Exception:  # noqa: BLE001 — whatever fails here fails again, with its own message, where the solver traces fun
             return None
         recipe = made.recipe
-        if path is not None:
+        if path is not None and not source_edited(exact=True):
             with contextlib.suppress(Exception):  # a read-only cache: still correct, only slower next time
                 path.parent.mkdir(parents=True, exist_ok=True)
                 atomic_write(path, recipe.to_json().encode("utf-8"))

@@ -226,7 +226,15 @@ with warnings.catch_warnings(record=True) as caught:
         solver.write_text(solver.read_text() + "\\n# saved while a process ran\\n")
     import mbcal.solver  # noqa: F401
     from mbcal._jax import jit, jnp
-    program = cache.exported("a" * 64, jit(lambda x: jnp.sin(x) * 2.0), np.zeros(3))
+
+    def traced(x):
+        if sys.argv[2] == "during":  # saved, and its module first imported, while the program traces
+            text = root / "text.py"
+            text.write_text(text.read_text() + "\\n# saved while a program traced\\n")
+            import mbcal.text  # noqa: F401
+        return jnp.sin(x) * 2.0
+
+    program = cache.exported("a" * 64, jit(traced), np.zeros(3))
     assert np.allclose(np.asarray(program(np.full(3, 0.5))), 2.0 * np.sin(0.5))
     (root.parent / "m.mdl").write_text("param a = 1 m\\n")
     mbcal.load_model(root.parent / "m.mdl")
@@ -268,3 +276,5 @@ def test_mbcal_source_saved_after_its_import_keeps_the_process_out_of_the_shared
     assert sum("changed since mbcal was imported" in w for w in edited["warned"]) == 1
     after = run("plain", "second")  # the saved code, imported as it is: its own key, the cache again
     assert after["warned"] == [] and after["key"] != plain["key"] and after["exports"] and after["syntax"] == 1
+    during = run("during", "third")  # looked at again right before the program is saved
+    assert during["exports"] == [] and sum("changed since mbcal was imported" in w for w in during["warned"]) == 1

@@ -151,6 +151,8 @@ def parse_text_cached(text: str, path: str) -> tuple[ast.Statement, ...]:
                 os.utime(entry)  # used now: the last to be removed when the part is full
             return stored
     statements = parse_text(text, path)  # raises on an error: only a text that parsed is kept
+    if source_edited(exact=True):  # the parser's modules, imported while it parsed, count too
+        return statements
     try:
         with deep_recursion():
             data = json.dumps(_to_json(statements), separators=(",", ":")).encode()
