@@ -678,11 +678,12 @@ def report(results: dict, path: Path, plot: str | None) -> str:
             "with additive steps (what this table measured until then).  Of the 0.3 s, the step",
             "itself (`OrientationSteps.plus`: the rotation R(angles)·exp([δ]×) and its angles read",
             "back) took ~0.2 s, rewriting each result's angles nearest its start (`represent`, in",
-            "the compiled program) ~0.05 s and the residual's rotation step ~0.03 s.  `represent` now",
-            "runs in NumPy after the solve, and `plus` computes the rotation entry by entry and places",
-            "the new angles by a gather (its batched 3 × 3 products and its scatter into x were XLA",
-            "kernels of their own): 1.12 → 0.99 s (the 13-view `calibrate_cameras` cold, with 13",
-            "orientations: 2.34 → 2.10 s, the next section).",
+            "the compiled program) ~0.05 s and the residual's rotation step ~0.03 s.  The angles are",
+            "now rewritten in NumPy after the solve (`OrientationSteps.represent_after`; a",
+            "parameterisation without one keeps `represent` in the program), and `plus` computes the",
+            "rotation entry by entry and places the new angles by a gather (its batched 3 × 3 products",
+            "and its scatter into x were XLA kernels of their own): 1.12 → 0.99 s (the 13-view",
+            "`calibrate_cameras` cold, with 13 orientations: 2.34 → 2.10 s, the next section).",
             "",
         ]
         rows = []
