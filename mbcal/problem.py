@@ -625,7 +625,7 @@ class OrientationSteps:
         """x with each orientation's angles rewritten as the equivalent ones nearest ``reference``
         (the restart's start): the other branch (r + π, π − p, y + π) or other multiples of 2π
         when they are nearer.  The orientation itself does not change."""
-        return self._placed(jnp, x, _equivalent_nearest(jnp, self._angles(x), self._angles(reference)))
+        return self._represented(jnp, x, reference)
 
     def represent_after(self, x: np.ndarray, reference: np.ndarray) -> np.ndarray:
         """:meth:`represent` in NumPy, of every restart (rows of x and reference) at once: the
@@ -633,7 +633,10 @@ class OrientationSteps:
         call).  Non-finite values give NaN, silently, as in the program."""
         x, reference = np.asarray(x, dtype=float), np.asarray(reference, dtype=float)
         with np.errstate(invalid="ignore", over="ignore"):
-            return self._placed(np, x, _equivalent_nearest(np, self._angles(x), self._angles(reference)))
+            return self._represented(np, x, reference)
+
+    def _represented(self, xp: Any, x: Any, reference: Any) -> Any:
+        return self._placed(xp, x, _equivalent_nearest(xp, self._angles(x), self._angles(reference)))
 
 
 def _rpy_nearest(R: tuple, previous: tuple) -> tuple:

@@ -739,10 +739,6 @@ class _StagedLocal:
     def represent(self, x: Array, reference: Array) -> Array:
         return self._local.represent(x, reference)
 
-    @property
-    def represent_after(self) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
-        return self._local.represent_after  # type: ignore[attr-defined]  # AttributeError: it has none
-
 
 @functools.lru_cache(maxsize=8)
 def _staged_local(local: _Identity, program: Callable) -> _StagedLocal:

@@ -148,9 +148,9 @@ class Compiler:
             if value.kind != SCALAR:
                 raise MdlTypeError(f"a parameter is a number, got a {value.kind}", stmt.value.span)
             if lower is not None and upper is not None and not lower <= upper:
-                shown = f"[{written(lower, stmt.lower, dim)}, {written(upper, stmt.upper, dim)}]"
                 raise DimensionError(
-                    f"empty search range {shown} for '{decl.name}' (lower bound above upper)",
+                    f"empty search range {shown_range(lower, stmt.lower, upper, stmt.upper, dim)} for "
+                    f"'{decl.name}' (lower bound above upper)",
                     stmt.lower.span if stmt.lower else stmt.span,
                 )
             if not math.isfinite(nominal):
@@ -192,7 +192,7 @@ class Compiler:
         if stmt.bounded:
             assert lower is not None and upper is not None  # the grammar puts 'bounded' after a range
             if not lower < upper:
-                shown = f"[{written(lower, stmt.lower, dim)}, {written(upper, stmt.upper, dim)}]"
+                shown = shown_range(lower, stmt.lower, upper, stmt.upper, dim)
                 raise DimensionError(f"'{decl.name}' is bounded by an empty range {shown}", where)
             limits: tuple[float | None, float | None] = (lower, upper)
         elif stmt.limit_lower is not None and stmt.limit_upper is not None:
@@ -222,7 +222,7 @@ class Compiler:
                 ends.append(value)
             limits = (ends[0], ends[1])
             if limits[0] is not None and limits[1] is not None and not limits[0] < limits[1]:
-                shown = f"[{written(limits[0], stmt.limit_lower, dim)}, {written(limits[1], stmt.limit_upper, dim)}]"
+                shown = shown_range(limits[0], stmt.limit_lower, limits[1], stmt.limit_upper, dim)
                 raise DimensionError(
                     f"empty limits {shown} for '{decl.name}' (the lower limit must be below the upper)",
                     where,
@@ -239,8 +239,8 @@ class Compiler:
             )
         if lower is not None and upper is not None and not (lo <= lower and upper <= hi):
             raise DimensionError(
-                f"the search range [{written(lower, stmt.lower, dim)}, {written(upper, stmt.upper, dim)}] of "
-                f"'{decl.name}' reaches outside its limits {shown}",
+                f"the search range {shown_range(lower, stmt.lower, upper, stmt.upper, dim)} of '{decl.name}' "
+                f"reaches outside its limits {shown}",
                 stmt.lower.span if stmt.lower is not None else where,
                 hint="random starts are drawn inside both: make the search range part of the limits",
             )
@@ -491,9 +491,12 @@ class _Call:
 def shown_limits(lo: float | None, hi: float | None, stmt: ast.Param, dim: Dim | None) -> str:
     """A parameter's hard limits for messages, as its declaration wrote them: ``[-60 deg, 60 deg]``."""
     written_lo, written_hi = (stmt.lower, stmt.upper) if stmt.bounded else (stmt.limit_lower, stmt.limit_upper)
-    lo = -math.inf if lo is None else lo
-    hi = math.inf if hi is None else hi
-    return f"[{written(lo, written_lo, dim)}, {written(hi, written_hi, dim)}]"
+    return shown_range(-math.inf if lo is None else lo, written_lo, math.inf if hi is None else hi, written_hi, dim)
+
+
+def shown_range(lo: float, lo_expr: ast.Expr | None, hi: float, hi_expr: ast.Expr | None, dim: Dim | None) -> str:
+    """``[lo, hi]`` for messages, each end as the model wrote it (:func:`written`)."""
+    return f"[{written(lo, lo_expr, dim)}, {written(hi, hi_expr, dim)}]"
 
 
 def written(value: float, expr: ast.Expr | None, dim: Dim | None) -> str:
