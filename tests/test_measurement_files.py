@@ -885,3 +885,37 @@ def test_an_unknown_top_level_key_is_located_also_when_it_differs_from_a_known_o
     with pytest.raises(MeasurementFileError) as info:
         read_measurements("m.json", lever)
     assert str(info.value).startswith("m.json:2:2: unknown key 'Format'"), str(info.value)  # it said 1:1
+
+
+# ---- a unit converts values and measured coordinates, never an index ------------------------------
+
+
+def test_a_unit_converts_a_ranges_value_but_never_its_ray_number(tmp_path, room):
+    """A range row's 'unit' is the unit of its distance and σ: its ray number is an index (it was
+    multiplied too, and ray 50 with unit mm read as ray 0)."""
+    path = write(
+        tmp_path,
+        "r.csv",
+        "id,kind,sensor,ray,value,sigma,unit\nr50,range,depth,50,1500,2,mm\nr100,range,depth,100,150,1,cm\n",
+    )
+    r50, r100 = read_measurements(path, room).measurements
+    assert r50.data == {"ray": 50} and r100.data == {"ray": 100}
+    np.testing.assert_allclose([r50.value[0], r100.value[0]], [1.5, 1.5])
+    np.testing.assert_allclose([r50.sigma[0], r100.sigma[0]], [0.002, 0.01])
+    doc = {"measurements": [{"id": "a", "kind": "range", "sensor": "depth", "ray": 100, "sigma": 1, "unit": "mm"}]}
+    (tmp_path / "r.json").write_text(json.dumps(doc), encoding="utf-8")
+    (a,) = read_measurements(tmp_path / "r.json", room).measurements
+    assert a.data == {"ray": 100}
+    # a ray the sensor does not have is refused whatever the unit (500 mm had read as ray 0.5 → 0)
+    bad = write(tmp_path, "bad.csv", "id,kind,sensor,ray,sigma,unit\nr,range,depth,500,1,mm\n")
+    with pytest.raises(MeasurementFileError, match="ray"):
+        read_measurements(bad, room)
+
+
+def test_a_unit_converts_a_measured_points_coordinates(tmp_path, room):
+    path = write(
+        tmp_path, "p.csv", "id,kind,object,frame,x,y,z,sigma,unit\np,point_to_surface,room,room,100,200,300,5,mm\n"
+    )
+    (p,) = read_measurements(path, room).measurements
+    assert p.data == pytest.approx({"x": 0.1, "y": 0.2, "z": 0.3})
+    np.testing.assert_allclose(p.sigma, [0.005])

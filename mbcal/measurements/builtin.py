@@ -364,6 +364,7 @@ class PointToSurface(MeasurementModel):
     roles = (Role("object", "object"), Role("frame", "frame", default="world"))
     values = ("distance",)
     data = ("x", "y", "z")
+    unit_data = ("x", "y", "z")
     value_dimension = "length"
     implicit_value = 0.0
     default_sigma = 1e-3

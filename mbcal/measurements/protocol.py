@@ -86,6 +86,9 @@ class MeasurementModel:
         Names of extra numeric inputs per measurement (``("ray",)``); not estimated.
     integer_data : tuple of str
         Those data that must be whole numbers (indices).
+    unit_data : tuple of str
+        Those data in the unit of the values (a measured point's coordinates): a file's ``unit``
+        converts them with the values.  The others (an index, a count) are never converted.
     value_dimension : str
         ``pixel``, ``length``, ``angle`` or ``none``: the unit a file's ``unit`` column converts.
     implicit_value : float or None
@@ -102,6 +105,7 @@ class MeasurementModel:
     values: ClassVar[tuple[str, ...]] = ()
     data: ClassVar[tuple[str, ...]] = ()
     integer_data: ClassVar[tuple[str, ...]] = ()
+    unit_data: ClassVar[tuple[str, ...]] = ()
     value_dimension: ClassVar[str] = "none"
     implicit_value: ClassVar[float | None] = None
     default_sigma: ClassVar[float] = 1.0

@@ -570,8 +570,8 @@ class SetBuilder:
             data[key] = v
         unit = str(record.get("unit") or "").strip() or None
         factor = _unit_factor(unit, mm, where)
-        if mm.value_dimension == "length" and mm.data and unit:  # the measured point of point_to_surface
-            data = {k: v * factor for k, v in data.items()}
+        if unit:  # data in the values' unit (point_to_surface's measured point); never an index (a ray)
+            data = {k: v * factor if k in mm.unit_data else v for k, v in data.items()}
         value = self._values(record, mm, where, factor)
         cov = self._covariance(record, mm, where, factor)
         if self.model is not None:
