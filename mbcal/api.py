@@ -9,6 +9,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import threading
 import time
@@ -647,6 +648,9 @@ def _result(
     pts = DeferredPoints(lambda: _point_uncertainties(problem, x_at, covariance, o.points, o.camera))
     visible = problem.visible(x)
     not_visible = [m.id for m, v in zip(problem.measurements.measurements, visible) if not v]
+    if verdict is not None and not (solved.best >= 0 and solved.status_best.converged):
+        # the verdict judges a minimum: without one it must not read "consistent and well determined"
+        verdict = dataclasses.replace(verdict, not_converged=solved.status_best.label)
     return CalibrationResult(
         problem=problem,
         solver=solved,

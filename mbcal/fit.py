@@ -287,6 +287,9 @@ class FitVerdict:
     """Rank of the problem, priors included (None: not recorded)."""
     unknowns: int | None = None
     """Free unknowns (not held at an active bound) that the rank is compared with."""
+    not_converged: str | None = None
+    """Why the solve's best restart did not converge (its status: ``max_iterations``), else None:
+    the verdict is then not trustworthy, and ``--accept-poor-fit`` does not accept it."""
 
     @property
     def tested(self) -> bool:
@@ -299,13 +302,15 @@ class FitVerdict:
 
     @property
     def trustworthy(self) -> bool:
-        """Consistent and well determined (what ``accepted`` overrides, unless undetermined)."""
-        return self.consistent and self.well_determined
+        """Converged, consistent and well determined (what ``accepted`` overrides, unless
+        undetermined or not converged)."""
+        return self.not_converged is None and self.consistent and self.well_determined
 
     @property
     def ok(self) -> bool:
-        """Trustworthy, or accepted — an unobservable problem is never ok: it has no estimate."""
-        return self.trustworthy or (self.accepted and self.determined)
+        """Trustworthy, or accepted — an unobservable problem is never ok (it has no estimate), nor
+        one whose solve did not converge (it has no minimum)."""
+        return self.trustworthy or (self.accepted and self.determined and self.not_converged is None)
 
     def _undetermined_text(self) -> str:
         if self.rank is None or self.unknowns is None:
@@ -335,10 +340,19 @@ class FitVerdict:
         what = "consistent with the stated σ" if self.consistent else "INCONSISTENT with the stated σ"
         rel = "≥" if self.p_value >= self.threshold else "<"
         shown = f"{self.p_value:.3g}" if self.p_value > 0 else "0 (below 1e-300)"
-        return (
-            f"{what}{aside}: S = {self.chi2:.6g} for {self.dof} degrees of freedom, "
-            f"p = {shown} {rel} {self.threshold:g}"
-        )
+        test = f"S = {self.chi2:.6g} for {self.dof} degrees of freedom, p = {shown} {rel} {self.threshold:g}"
+        groups = [s.subject for s in self.suspects if s.kind == "structural"]
+        if groups and self.loss != "linear" and not self.consistent:
+            # a robust fit tests the rest without the groups found off: S and p are the rest's (a
+            # passing p beside "INCONSISTENT" read as a contradiction, and the groups were unnamed)
+            named = ", ".join(groups[:3]) + (f" and {len(groups) - 3} more" if len(groups) > 3 else "")
+            verdict = "passes" if self.p_value >= self.threshold else "fails too"
+            outliers = f" and {len(self.set_aside)} outlier(s)" if self.set_aside else ""
+            return (
+                f"{what}: {len(groups)} group(s) systematically off ({named}; suspects below); the rest, without "
+                f"them{outliers}, {verdict}: {test}"
+            )
+        return f"{what}{aside}: {test}"
 
     def lines(self) -> list[str]:
         """The verdict as report lines."""
@@ -384,6 +398,8 @@ class FitVerdict:
             # a plan (no measured values) has no fit to test; a solve without redundancy has one it cannot test
             return "well determined" if self.chi2 is None else "well determined (the fit is not tested)"
         why = []
+        if self.not_converged is not None:
+            why.append(f"the solve did not converge ({self.not_converged})")
         if not self.determined:
             why.append(self._undetermined_text())
         if not self.consistent:
@@ -393,6 +409,8 @@ class FitVerdict:
         text = f"NOT trustworthy: {' and '.join(why)}"
         if not self.determined:  # nothing to accept: --accept-poor-fit does not make it usable
             return text + " (exit status 1, even with --accept-poor-fit: add measurements or fix unknowns)"
+        if self.not_converged is not None:  # no minimum to accept
+            return text + " (exit status 1, even with --accept-poor-fit: more iterations or other starts)"
         if self.accepted:
             return text + "; accepted anyway (--accept-poor-fit)"
         return text + " (exit status 1; --accept-poor-fit accepts it)"
@@ -418,6 +436,7 @@ class FitVerdict:
             "max_condition": self.max_condition,
             "well_determined": self.well_determined,
             "accepted": self.accepted,
+            "not_converged": self.not_converged,
             "ok": self.ok,
             "verdict": self.verdict(),
         }

@@ -298,6 +298,9 @@ class CalibrationResult:
             note.append("NOT A TRUSTWORTHY FIT" + (": " + "; ".join(why) if why else ""))
             if self.verdict is not None:
                 note.append(f"verdict: {self.verdict.verdict()}")
+        elif self.verdict is not None and not self.verdict.trustworthy:
+            # accepted (--accept-poor-fit): the model file still says what was accepted
+            note.append(f"verdict: {self.verdict.verdict()}")
         write_calibrated_model(
             self.problem.model,
             self.values,

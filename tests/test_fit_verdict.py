@@ -376,6 +376,26 @@ def test_an_unobservable_solve_is_not_well_determined_in_the_verdict(lever, caps
     assert "accepted anyway" not in text and "even with --accept-poor-fit" in text
 
 
+def test_a_solve_that_did_not_converge_is_not_called_consistent_and_well_determined(misclicked, tmp_path, capsys):
+    """One iteration: the first line said NOT converged and the last 'verdict: consistent and well
+    determined', with the JSON's fit.ok true and the written model's header contradicting itself."""
+    folder, _ = misclicked
+    capsys.readouterr()
+    base = [ROOM, folder / "clean.csv", "--estimate", "room.*", "--restarts", "4", "--max-iterations", "1"]
+    for extra in ([], ["--accept-poor-fit"]):
+        status, report, text = solve(*base, *extra, "--write-model", tmp_path / "room.mdl", capsys=capsys)
+        fit = report["fit"]
+        assert status == 1 and not report["ok"] and report["status"] == "not_converged"
+        assert not fit["ok"] and fit["not_converged"] == "max_iterations"
+        assert fit["verdict"].startswith("NOT trustworthy: the solve did not converge (max_iterations)")
+        assert "even with --accept-poor-fit" in fit["verdict"] and "accepted anyway" not in text
+        assert "consistent and well determined" not in text
+        header = (tmp_path / "room.mdl").read_text(encoding="utf-8").split("param", 1)[0]
+        assert "NOT A TRUSTWORTHY FIT" in header and "consistent and well determined" not in header
+    status, report, _ = solve(ROOM, folder / "clean.csv", "--estimate", "room.*", "--restarts", "4", capsys=capsys)
+    assert status == 0 and report["fit"]["not_converged"] is None and report["fit"]["ok"]
+
+
 def test_an_unobservable_plan_is_not_well_determined_in_the_verdict(lever, capsys):
     capsys.readouterr()
     status, report, text = run_json("observe", ROOM, lever / "plan.csv", "--estimate", "room.*", capsys=capsys)
@@ -448,3 +468,48 @@ def test_a_robust_fit_whose_rest_is_untestable_says_the_groups_found_make_it_inc
     nothing = FitVerdict(2.5, 0, None, DEFAULT_THRESHOLD, consistent=True, loss="cauchy")
     assert nothing.headline().endswith("the fit cannot be tested")
     assert nothing.verdict() == "well determined (the fit is not tested)"
+
+
+def test_a_robust_fit_with_groups_off_names_them_and_says_the_passing_test_is_the_rests():
+    """The reviewer's room with 20 of 48 clicks moved, solved with --loss cauchy: the headline read
+    'INCONSISTENT … after setting aside 2 outlier(s): S = 15.43 for 22 degrees of freedom, p = 0.843
+    ≥ 0.001' — a passing test under 'INCONSISTENT', and the three groups left out of it unnamed."""
+    from mbcal.fit import FitVerdict, Suspect
+
+    groups = tuple(
+        Suspect("structural", name, ("a", "b"), 100.0, 1e-9, None, f"{name}: off")
+        for name in ("camera robot.head.eyes.left", "object room.box", "object room.lower_pipe", "object room.fan")
+    )
+    found = FitVerdict(15.4319, 22, 0.843, DEFAULT_THRESHOLD, consistent=False, suspects=groups,
+                       set_aside=("r1", "r2"), loss="cauchy")  # fmt: skip
+    assert found.headline() == (
+        "INCONSISTENT with the stated σ: 4 group(s) systematically off (camera robot.head.eyes.left, object "
+        "room.box, object room.lower_pipe and 1 more; suspects below); the rest, without them and 2 outlier(s), "
+        "passes: S = 15.4319 for 22 degrees of freedom, p = 0.843 ≥ 0.001"
+    )
+    failing = FitVerdict(95.0, 22, 1e-9, DEFAULT_THRESHOLD, consistent=False, suspects=groups[:1], loss="huber")
+    assert failing.headline().startswith(
+        "INCONSISTENT with the stated σ: 1 group(s) systematically off (camera robot.head.eyes.left; suspects "
+        "below); the rest, without them, fails too: S = 95"
+    )
+    # plain least squares: S and p are the whole fit's, as before
+    plain = FitVerdict(95.0, 22, 1e-9, DEFAULT_THRESHOLD, consistent=False, suspects=groups[:1])
+    assert plain.headline() == "INCONSISTENT with the stated σ: S = 95 for 22 degrees of freedom, p = 1e-09 < 0.001"
+
+
+def test_a_model_written_from_an_accepted_poor_fit_says_what_was_accepted(tmp_path, capsys):
+    """--accept-poor-fit with --write-model: the file's header read like a clean calibration."""
+    clicks = tmp_path / "clicks.csv"
+    clicks.write_text(
+        "id,kind,camera,point,u,v,sigma\nhub,image_point,eye,lever.hub,334.3,226.8,1\n"
+        "tip,image_point,eye,lever.tip,123.3,170.9,1\n",
+        encoding="utf-8",
+    )
+    out = tmp_path / "lever.mdl"
+    args = ["solve", str(MODELS / "lever.mdl"), str(clicks), "--estimate", "lever.angle", "-q", "--write-model"]
+    assert main([*args, str(out), "--accept-poor-fit"]) == 0
+    header = out.read_text(encoding="utf-8").split("param", 1)[0]
+    assert (
+        "# verdict: NOT trustworthy: the fit is inconsistent with the stated σ; accepted anyway (--accept-poor-fit)"
+        in header
+    )
