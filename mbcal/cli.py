@@ -45,7 +45,7 @@ from mbcal.outputs import (  # noqa: E402
     refuse_inputs,
 )
 from mbcal.text import table  # noqa: E402
-from mbcal.units import LENGTH, UNITS, describe, to_display  # noqa: E402
+from mbcal.units import DIMENSIONLESS, LENGTH, UNITS, describe, to_display  # noqa: E402
 
 __all__ = ["main", "build_parser"]
 
@@ -186,7 +186,8 @@ def parse_assignments(items: Sequence[str], model=None, option: str = "--set") -
             raise MbcalError(f"{option} {name}: value must be finite")
         if model is not None and dim is not None:
             for param in model.match_params(name.split("@", 1)[0]):
-                _check_dimension(dim, unit, param, option, model.param(param).dim)
+                # declared without a unit: a plain number (a focal length in pixels took '600mm' as 0.6)
+                _check_dimension(dim, unit, param, option, model.param(param).dim or DIMENSIONLESS)
         if name in out:  # which one was meant? (the last won in silence)
             raise MbcalError(f"{option} {name} is given twice")
         out[name] = value
@@ -205,17 +206,9 @@ def _check_values(model, values: dict[str, float], option: str = "--set") -> dic
     for key, value in values.items():
         for name in model.match_params(key.split("@", 1)[0]):
             info = model.param(name)
-            low = -math.inf if info.limit_lower is None else info.limit_lower
-            high = math.inf if info.limit_upper is None else info.limit_upper
-            if not low <= value <= high:
-                unit = info.unit
-                suffix = f" {unit}" if unit else ""
-                low_high = ", ".join(f"{to_display(unit, v):g}" for v in (low, high))
-                raise MbcalError(
-                    f"{option} {key}: {to_display(unit, value):g}{suffix} is outside the hard "
-                    f"limits of {name} [{low_high}]{suffix}",
-                    info.span,
-                )
+            outside = info.outside_limits(value)
+            if outside:
+                raise MbcalError(f"{option} {key}: {outside}", info.span)
             if "@" not in key:  # one configuration's value: checked against the limits only
                 X[model.param_index(name)] = value
     check_at_nominal(model, X, where=f"with the values of {option}")

@@ -213,6 +213,9 @@ class ParameterSet:
             if config is not None and not self.model.params[i].per_configuration:
                 raise ParameterError(f"'{name}' is not declared 'per configuration'; set it without '@{config}'")
             base[rows, i] = _finite(value, key)
+            outside = self.model.params[i].outside_limits(float(base[rows[0], i])) if rows else None
+            if outside:
+                raise ParameterError(f"the given value of '{key}': {outside}")
 
     @property
     def names(self) -> list[str]:

@@ -186,7 +186,8 @@ CSV_ERRORS = {
     ),
     "known_not_per_configuration": (
         "kind,config,param,value\nknown,c1,lever.angle,5 deg\n",
-        "m.csv:2:1: 'lever.angle' is given for configuration 'c1' but is not declared 'per configuration' in the model",
+        "m.csv:2:10: 'lever.angle' is given for configuration 'c1' but is not declared 'per configuration' "
+        "in the model",
         None,
     ),
     "underscore_number": (
@@ -919,3 +920,85 @@ def test_a_unit_converts_a_measured_points_coordinates(tmp_path, room):
     (p,) = read_measurements(path, room).measurements
     assert p.data == pytest.approx({"x": 0.1, "y": 0.2, "z": 0.3})
     np.testing.assert_allclose(p.sigma, [0.005])
+
+
+# ---- a file's known values are checked as --set checks them ---------------------------------------
+
+PLAIN_F = """param cam.f = 600 in [500, 700]
+param lever.angle = 20 deg in [-90 deg, 90 deg]
+param lever.length = 25 cm limits [10 cm, 40 cm]
+object lever at (0, 0.8 m, 1.1 m) {
+  joint revolute(-y, lever.angle)
+  shape arm = box(2.5 cm, 1.5 cm, lever.length) at (0, 0, lever.length / 2)
+  point hub = (0, 0, 0)
+  point tip = (0, 0, lever.length)
+}
+camera eye(width = 669, height = 453, f = cam.f) at look_at(eye = (0, 0, 1.3 m), target = (0, 0.8 m, 1.1 m))
+measure image_point
+"""
+
+
+@pytest.fixture(scope="module")
+def plain_f(tmp_path_factory):
+    path = tmp_path_factory.mktemp("plain") / "camf.mdl"
+    path.write_text(PLAIN_F, encoding="utf-8")
+    return load_model(path)
+
+
+@pytest.mark.parametrize(
+    ("param", "value", "unit", "message"),
+    [
+        # declared without a unit: a plain number ('600 mm' was read as a focal length of 0.6 px)
+        ("cam.f", "600", "mm", "k.csv:2:24: value of 'cam.f': the unit 'mm' does not fit a plain number"),
+        ("cam.f", "600 mm", "", "k.csv:2:20: value of 'cam.f': the unit 'mm' does not fit a plain number"),
+        # outside the hard limits, at the value's cell (was taken as it was)
+        (
+            "lever.length",
+            "45 cm",
+            "",
+            "k.csv:2:27: value of 'lever.length': 0.45 m is outside the hard limits of lever.length [0.1, 0.4] m",
+        ),
+        # an unknown name, at the name's cell (errors of known rows pointed at column 1)
+        ("lever.lenth", "1", "", "k.csv:2:14: the model has no param named 'lever.lenth'"),
+    ],
+)
+def test_a_known_value_from_a_file_is_checked_at_its_cell(tmp_path, plain_f, monkeypatch, param, value, unit, message):
+    monkeypatch.chdir(tmp_path)
+    known_csv(tmp_path, value, unit, param)
+    with pytest.raises(MeasurementFileError) as info:
+        read_measurements("k.csv", plain_f)
+    assert str(info.value).startswith(message), str(info.value)
+    # a plain number within the limits is read as it is
+    ms = read_measurements(known_csv(tmp_path, "650", "", "cam.f"), plain_f)
+    assert ms.known == {"cam.f": 650.0}
+
+
+def test_a_files_known_values_keep_the_model_valid(tmp_path, lever, monkeypatch):
+    """A negative length from a file made a box of negative size without a word (--set refuses it)."""
+    from mbcal.errors import DimensionError
+
+    monkeypatch.chdir(tmp_path)
+    known_csv(tmp_path, "-25 cm", "")
+    with pytest.raises(DimensionError, match="must be positive, got -0.25 m with the known values of k.csv"):
+        read_measurements("k.csv", lever)
+
+
+def test_the_cli_refuses_a_unit_for_a_parameter_declared_without_one(tmp_path, plain_f, capsys):
+    from mbcal.cli import main
+
+    model = tmp_path / "camf.mdl"
+    model.write_text(PLAIN_F, encoding="utf-8")
+    plan = write(tmp_path, "p.csv", "id,kind,camera,point,sigma\nhub,image_point,eye,lever.hub,1\n")
+    assert main(["simulate", str(model), str(plan), "--set", "cam.f=600mm", "-o", str(tmp_path / "o.csv")]) == 2
+    assert "--set cam.f: 'mm' is not a unit of cam.f, which is a plain number" in capsys.readouterr().err
+    assert not (tmp_path / "o.csv").exists()
+    assert main(["simulate", str(model), str(plan), "--set", "cam.f=650", "-o", str(tmp_path / "o.csv")]) == 0
+
+
+def test_known_values_given_to_the_library_keep_within_the_hard_limits(plain_f):
+    from mbcal.errors import ParameterError
+    from mbcal.params import ParameterSet
+
+    with pytest.raises(ParameterError, match=r"'lever.length': 0.45 m is outside the hard limits"):
+        ParameterSet(plain_f, ["lever.angle"], known={"lever.length": 0.45})
+    assert ParameterSet(plain_f, ["lever.angle"], known={"lever.length": 0.3}).size == 1

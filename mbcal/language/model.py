@@ -8,6 +8,7 @@ held as :mod:`mbcal.language.ir` graphs; :func:`mbcal.modeling.modeler` evaluate
 from __future__ import annotations
 
 import fnmatch
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -95,6 +96,19 @@ class ParamInfo:
 
     def describe(self) -> str:
         return describe(self.dim)
+
+    def outside_limits(self, value: float) -> str | None:
+        """None when ``value`` (SI) lies within the hard limits, else what is wrong, in the display
+        unit: ``45 cm`` → "0.45 m is outside the hard limits of lever.length [0.1, 0.4] m".  Every
+        way a value is given (``--set``, a measurement file's known value, ``known=``) is checked
+        by this one rule."""
+        low = -math.inf if self.limit_lower is None else self.limit_lower
+        high = math.inf if self.limit_upper is None else self.limit_upper
+        if low <= value <= high:
+            return None
+        suffix = f" {self.unit}" if self.unit else ""
+        ends = ", ".join(f"{self.display(v):.12g}" for v in (low, high))
+        return f"{self.display(value):.12g}{suffix} is outside the hard limits of {self.name} [{ends}]{suffix}"
 
 
 @dataclass(frozen=True, eq=False)

@@ -186,14 +186,23 @@ def _read_csv(handle, path: str, builder: SetBuilder) -> None:
             if unit:  # the unit cell, for an error in it (a dimension that does not fit)
                 cells = _field_columns(lines.last.rstrip("\r\n"), len(row))
                 unit_where = SourceSpan(path, line_no, cells[header.index("unit")])
-            builder.known_value(
-                record.get("param", ""),
-                record.get("value", ""),
-                record.get("config") or None,
-                where,
-                unit=unit,
-                unit_where=unit_where,
-            )
+            try:
+                builder.known_value(
+                    record.get("param", ""),
+                    record.get("value", ""),
+                    record.get("config") or None,
+                    where,
+                    unit=unit,
+                    unit_where=unit_where,
+                )
+            except MeasurementFileError as err:
+                # about the parameter (its name, its configuration) or else about its value: that cell
+                if err.span == where and (err.field or "value") in header:
+                    cells = _field_columns(lines.last.rstrip("\r\n"), len(row))
+                    column = header.index(err.field or "value")
+                    if column < len(cells):
+                        err.span = SourceSpan(path, line_no, cells[column])
+                raise
             continue
         try:
             builder.add(record, where, len(builder.measurements) + 1)

@@ -20,7 +20,7 @@ import numpy as np
 from mbcal.errors import MbcalError, MeasurementFileError, SourceSpan, shown, suggest
 from mbcal.measurements.protocol import MeasurementModel
 from mbcal.measurements.registry import registry
-from mbcal.units import ANGLE, LENGTH, UNITS, Dim, describe
+from mbcal.units import ANGLE, DIMENSIONLESS, LENGTH, UNITS, Dim, describe
 
 __all__ = [
     "Columns",
@@ -461,23 +461,29 @@ class SetBuilder:
         read by the same rules.
         """
         if not name:
-            raise MeasurementFileError("a 'known' row needs a parameter name in column 'param'", where)
+            raise MeasurementFileError("a 'known' row needs a parameter name in column 'param'", where, field="param")
         dimension = None
         full = name
         if self.model is not None:
             try:
                 info = self.model.param(name)
             except MbcalError as err:
-                raise MeasurementFileError(err.message, where, hint=err.hint) from None
+                raise MeasurementFileError(err.message, where, hint=err.hint, field="param") from None
             full = info.name
-            dimension = info.dim
+            # declared without a unit: a plain number (a unit would rescale it in silence)
+            dimension = info.dim or DIMENSIONLESS
             if config and not info.per_configuration:
                 raise MeasurementFileError(
                     f"'{name}' is given for configuration '{config}' but is not declared 'per configuration' "
                     "in the model",
                     where,
+                    field="param",
                 )
         v = parse_quantity(value, where, f"value of '{name}'", dimension, unit=unit, unit_where=unit_where)
+        if self.model is not None:
+            outside = info.outside_limits(v)  # as --set: a file's value may not leave the model either
+            if outside:
+                raise MeasurementFileError(f"value of '{name}': {outside}", where)
         if config:
             self.configuration(config, where)
         target = self.configurations[config] if config else self.known
@@ -486,7 +492,9 @@ class SetBuilder:
             first = given.get(full, name)
             also = f" (as '{first}')" if first != name else ""
             raise MeasurementFileError(
-                f"'{name}' is given twice{also}" + (f" for configuration '{config}'" if config else ""), where
+                f"'{name}' is given twice{also}" + (f" for configuration '{config}'" if config else ""),
+                where,
+                field="param",
             )
         given[full] = name
         target[name] = v
@@ -682,6 +690,13 @@ class SetBuilder:
         if not self.measurements:
             raise MeasurementFileError("no measurements", SourceSpan(self.path, 1, 1))
         self._check_configurations()
+        if self.model is not None and self.known:  # as --set: sizes positive, poses finite with them
+            from mbcal.language.check import check_at_nominal
+
+            X = self.model.nominal.copy()
+            for name, value in self.known.items():
+                X[self.model.param_index(name)] = value
+            check_at_nominal(self.model, X, where=f"with the known values of {self.path}")
         return MeasurementSet(self.measurements, self.known, self.configurations, self.path, self.images)
 
     def _check_configurations(self) -> None:
