@@ -388,6 +388,7 @@ def _distinct(paths: Sequence[str]) -> None:
 
 
 _OUTPUT_OPTIONS = {"json": "--json", "write_model": "--write-model", "plot": "--plot", "output": "-o/--output"}
+_OPTION_ATTRS = {option: attr for attr, option in _OUTPUT_OPTIONS.items()}
 
 
 def _check_outputs(args, inputs) -> None:
@@ -423,6 +424,26 @@ def _check_outputs(args, inputs) -> None:
         folder = check_output_folder(overlay, "--overlay").resolve()
         if folder in claimed:
             raise MbcalError(f"{claimed[folder]} and --overlay both name {overlay}: a file and a folder")
+
+
+def _check_overlays(args, planned: Sequence[str | os.PathLike[str]]) -> None:
+    """The pictures --overlay will write, known before the work: none may be an input (a photo in
+    that folder) nor a file another option names (``--json ov/eye_before.png`` was replaced by the
+    overlay, or replaced it, without a word)."""
+    refuse_inputs(planned)
+    claimed = {
+        Path(value).resolve(): option
+        for attr, option in _OUTPUT_OPTIONS.items()
+        if (value := getattr(args, attr, None)) and value != "-"
+    }
+    for path in planned:
+        option = claimed.get(Path(path).resolve())
+        if option is not None:
+            raise MbcalError(
+                f"{option} names {getattr(args, _OPTION_ATTRS[option])}, a picture --overlay writes: "
+                "one would replace the other",
+                hint="choose another name, or another folder for --overlay",
+            )
 
 
 # ---- solve ------------------------------------------------------------------------------------------
@@ -483,7 +504,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
     if args.overlay:  # an overlay's name taken by an input (a photo in that folder): refused now, not after the solve
         from mbcal.render.overlays import planned_overlays  # lazy: rendering loads only when a picture is made
 
-        refuse_inputs(planned_overlays(model, data.measurements, args.overlay))
+        _check_overlays(args, planned_overlays(model, data.measurements, args.overlay))
     progress.step(f"compiling and solving {args.restarts} restarts")
     result = calibrate(
         model,
@@ -702,7 +723,7 @@ def cmd_calibrate_camera(args: argparse.Namespace) -> int:
         raise MbcalError("--image is for the overlays: give --overlay DIR too")
     protect(images.values())  # the measurement file's images too, not only those of --image
     if args.overlay:  # an overlay named like one of its images (same folder): refused now, not after the solve
-        refuse_inputs(planned_reprojections(model, data.measurements, images, args.overlay))
+        _check_overlays(args, planned_reprojections(model, data.measurements, images, args.overlay))
     progress = Progress(not args.quiet)
     progress.step("initialising (Zhang's method) and refining")
     cc = calibrate_cameras(

@@ -380,6 +380,20 @@ def test_an_overlay_never_replaces_a_photo_it_was_drawn_over_and_its_folder_is_c
     assert not (tmp_path / "r.mdl").exists()
 
 
+@pytest.mark.parametrize(("option", "name"), [("--json", "eye_before.png"), ("--plot", "eye_after.png")])
+def test_an_output_named_like_an_overlay_is_refused_before_the_solve(clicks, tmp_path, capsys, option, name):
+    """--json ov/eye_before.png with --overlay ov: the overlay replaced the report (or the plot the
+    overlay) and the command said nothing."""
+    folder = tmp_path / "ov"
+    folder.mkdir()
+    target = folder / name
+    assert cli.main(["solve", LEVER, str(clicks), "--estimate", "lever.angle", "-q", option, str(target),
+                     "--overlay", str(folder)]) == 2  # fmt: skip
+    err = capsys.readouterr().err
+    assert f"{option} names {target}, a picture --overlay writes: one would replace the other" in err
+    assert not target.exists()
+
+
 def test_a_value_given_twice_and_images_without_overlays_are_refused(clicks, capsys):
     base = ["solve", LEVER, str(clicks), "--estimate", "lever.angle", "-q"]
     assert cli.main([*base, "--set", "lever.length=25cm", "--set", "lever.length=30cm"]) == 2  # the last won
