@@ -10,6 +10,7 @@ accepts the last two); 130 means interrupted.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -37,6 +38,7 @@ from mbcal.cache import CACHE_PARTS, PROGRAM_PARTS, cache_contents, cache_dir, c
 from mbcal.errors import MbcalError, suggest  # noqa: E402
 from mbcal.outputs import (  # noqa: E402
     INTERRUPTED,
+    all_or_nothing,
     atomic_write,
     check_output,
     check_output_folder,
@@ -1550,6 +1552,11 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# Commands whose files appear as their work goes on (a model kept calibrated, the studio's Save):
+# each file still written atomically, but not held back to the end as a command's outputs are.
+_SERVICES = frozenset({"watch", "studio"})
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit status."""
     parser = build_parser()
@@ -1564,7 +1571,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_BAD_INPUT
     restore = _watch_interrupts()
     try:
-        with protected_inputs():  # no write of the command replaces one of its inputs (_check_outputs)
+        # no write of the command replaces one of its inputs (_check_outputs); and a command's
+        # outputs appear together or not at all (Ctrl-C while its overlays were drawn left the
+        # report and some pictures), except where they must appear as the work goes on
+        together = all_or_nothing() if args.command not in _SERVICES else contextlib.nullcontext()
+        with protected_inputs(), together:
             code = int(args.func(args))
         if INTERRUPTED.is_set():  # a Ctrl-C that Python swallowed (in a finalizer): still interrupted
             raise KeyboardInterrupt

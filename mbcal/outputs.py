@@ -24,7 +24,15 @@ from typing import Any
 
 from mbcal.errors import OutputError
 
-__all__ = ["atomic_write", "atomic_writer", "check_output", "current_umask", "finite_or_null", "OutputError"]
+__all__ = [
+    "all_or_nothing",
+    "atomic_write",
+    "atomic_writer",
+    "check_output",
+    "current_umask",
+    "finite_or_null",
+    "OutputError",
+]
 
 
 def finite_or_null(data: Any) -> Any:
@@ -180,11 +188,66 @@ def atomic_writer(path: str | os.PathLike[str], mode: str = "wb") -> Iterator:
             os.fsync(handle.fileno())
         os.chmod(tmp, _mode_for(target))
         check_interrupted()  # an interrupt Python swallowed still stops the write
-        os.replace(tmp, target)
+        pending = _PENDING.get()
+        if pending is not None:  # renamed with the command's other outputs (all_or_nothing)
+            pending.append((tmp, target))
+        else:
+            os.replace(tmp, target)
     except BaseException:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         raise
+
+
+# The finished temporary files of an all_or_nothing block and their targets, in the order written.
+_PENDING: contextvars.ContextVar[list[tuple[str, Path]] | None] = contextvars.ContextVar(
+    "mbcal_pending_outputs", default=None
+)
+
+
+@contextlib.contextmanager
+def all_or_nothing() -> Iterator[None]:
+    """Within the block, each atomic write keeps its finished temporary file, and all are renamed
+    over their targets when the block ends without an exception (Ctrl-C held off meanwhile, where
+    it can be): a command interrupted half-way — while its overlays are drawn, after its report —
+    leaves none of its outputs, not some.  Not for work whose files must appear as it goes (the
+    model manager, the studio's Save), nor for a block that reads back what it wrote."""
+    pending: list[tuple[str, Path]] = []
+    token = _PENDING.set(pending)
+    try:
+        yield
+    except BaseException:
+        for tmp, _ in pending:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+        raise
+    finally:
+        _PENDING.reset(token)
+    with _interrupts_held():
+        for k, (tmp, target) in enumerate(pending):
+            try:
+                os.replace(tmp, target)
+            except BaseException:
+                for rest, _ in pending[k:]:
+                    with contextlib.suppress(OSError):
+                        os.unlink(rest)
+                raise
+
+
+@contextlib.contextmanager
+def _interrupts_held() -> Iterator[None]:
+    """SIGINT blocked for the block (delivered after it), where the platform and thread allow."""
+    import signal
+
+    block = getattr(signal, "pthread_sigmask", None)
+    if block is None or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = block(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        block(signal.SIG_SETMASK, previous)
 
 
 def atomic_write(path: str | os.PathLike[str], data: bytes | str) -> None:

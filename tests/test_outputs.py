@@ -92,3 +92,50 @@ def test_an_output_folder_the_system_refuses_is_found_before_the_work(tmp_path, 
     monkeypatch.undo()
     assert check_output_folder(tmp_path / "ov", "--overlay") == tmp_path / "ov"
     assert list(tmp_path.iterdir()) == []  # the probe leaves nothing behind
+
+
+def test_outputs_written_together_appear_together_or_not_at_all(tmp_path):
+    from mbcal.outputs import all_or_nothing
+
+    (tmp_path / "b.txt").write_text("old b")
+    with pytest.raises(KeyboardInterrupt), all_or_nothing():
+        atomic_write(tmp_path / "a.txt", "a")
+        atomic_write(tmp_path / "b.txt", "new b")
+        assert not (tmp_path / "a.txt").exists() and (tmp_path / "b.txt").read_text() == "old b"  # held back
+        raise KeyboardInterrupt
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["b.txt"] and (tmp_path / "b.txt").read_text() == "old b"
+    with all_or_nothing():
+        atomic_write(tmp_path / "a.txt", "a")
+        atomic_write(tmp_path / "b.txt", "new b")
+        atomic_write(tmp_path / "a.txt", "a again")  # the last write of a name wins, as without the block
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt", "b.txt"]
+    assert (tmp_path / "a.txt").read_text() == "a again" and (tmp_path / "b.txt").read_text() == "new b"
+    atomic_write(tmp_path / "c.txt", "c")  # outside a block: at once
+    assert (tmp_path / "c.txt").read_text() == "c"
+
+
+def test_a_solve_interrupted_while_drawing_its_overlays_leaves_none_of_its_outputs(tmp_path, monkeypatch, capsys):
+    """Ctrl-C while the overlays were drawn left some overlays (and, had they come first, the
+    report and the model): the command's outputs now appear together or not at all."""
+    import mbcal.render.overlays as overlays
+
+    clicks = tmp_path / "clicks.csv"
+    plan = ROOT / "measurements" / "lever_plan.csv"
+    model = str(ROOT / "models" / "lever.mdl")
+    simulate = ["simulate", model, str(plan), "--set", "lever.angle=35deg", "--seed", "1", "-o", str(clicks), "-q"]
+    assert main(simulate) == 0
+    drawn = overlays.calibration_overlays
+
+    def interrupted(result, folder, **kwargs):
+        drawn(result, folder, **kwargs)  # every picture written, then Ctrl-C
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(overlays, "calibration_overlays", interrupted)
+    folder = tmp_path / "ov"
+    outputs = ["--json", str(tmp_path / "r.json"), "--write-model", str(tmp_path / "m.mdl"), "--overlay", str(folder)]
+    assert main(["solve", model, str(clicks), "--estimate", "lever.angle", "-q", *outputs]) == 130
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["clicks.csv", "ov"] and not list(folder.iterdir())
+    monkeypatch.setattr(overlays, "calibration_overlays", drawn)
+    assert main(["solve", model, str(clicks), "--estimate", "lever.angle", "-q", *outputs]) == 0
+    assert sorted(p.name for p in folder.iterdir()) == ["eye_after.png", "eye_before.png"]
+    assert (tmp_path / "r.json").is_file() and (tmp_path / "m.mdl").is_file()
