@@ -385,6 +385,21 @@ def test_urdfs_mbcal_cannot_model_are_refused_with_the_file_name(tmp_path, body,
     assert message in str(err.value)
 
 
+def test_a_cycle_or_a_second_root_is_an_error_at_a_line_of_it(tmp_path):
+    """The cycle's message named the file only, though the docs promise the joint's line."""
+    links = '<robot name="r">\n  <link name="a"/>\n  <link name="b"/>\n'
+    cycle = (
+        '  <joint name="ab" type="fixed">\n    <parent link="a"/>\n    <child link="b"/>\n  </joint>\n'
+        '  <joint name="ba" type="fixed">\n    <parent link="b"/>\n    <child link="a"/>\n  </joint>\n</robot>\n'
+    )
+    with pytest.raises(
+        MdlError, match=r"bad\.urdf:8:3: the links do not form one tree: the joints 'ba', 'ab' form a cycle"
+    ):
+        mbcal.load_model(write(tmp_path, links + cycle))
+    with pytest.raises(MdlError, match=r"bad\.urdf:3:3: the links do not form one tree: several root links: a, b"):
+        mbcal.load_model(write(tmp_path, links + "</robot>\n"))
+
+
 def test_mbcal_check_reads_a_urdf():
     done = subprocess.run(
         [sys.executable, "-m", "mbcal", "check", str(ARM)], capture_output=True, text=True, timeout=300

@@ -262,9 +262,23 @@ def read_robot(path: str | os.PathLike[str]) -> _Robot:
         parent_of[joint.child] = joint.name
         robot.children.setdefault(joint.parent, []).append(joint)
     roots = [name for name in links if name not in parent_of]
+    if not roots:
+        # every link has a parent: follow parents from the first link until one repeats, and name a
+        # joint of that cycle at its line (the message had no line to go to)
+        joints = {j.name: j for j in urdf.robot.joints}
+        walked: list[str] = []
+        link = next(iter(links))
+        while link not in walked:
+            walked.append(link)
+            link = joints[parent_of[link]].parent
+        cycle = [parent_of[name] for name in walked[walked.index(link) :]]
+        raise robot.error(
+            f"the links do not form one tree: the joints {', '.join(repr(j) for j in cycle)} form a cycle",
+            "joint",
+            cycle[0],
+        )
     if len(roots) != 1:
-        what = "no root link (the joints form a cycle)" if not roots else f"several root links: {', '.join(roots)}"
-        raise robot.error(f"the links do not form one tree: {what}")
+        raise robot.error(f"the links do not form one tree: several root links: {', '.join(roots)}", "link", roots[1])
     robot.root = roots[0]
     order = []
     stack = [robot.root]
