@@ -79,15 +79,27 @@ def _add(sub, name: str, summary: str, description: str, example: str, func: Com
 
 
 def cmd_check(args: argparse.Namespace) -> int:
+    # Every model is checked, as a linter checks every file: the first error stopped the rest unread.
+    failed = 0
     for i, path in enumerate(args.models):
-        model = _load(path)
+        try:
+            model = _load(path)
+        except MbcalError as err:
+            if len(args.models) == 1:
+                raise
+            failed += 1
+            print(err.render(), file=sys.stderr)
+            continue
         if not args.quiet:
             if i:
                 print()
             print(model.summary())
-    if args.quiet:
-        return EXIT_OK
-    print(f"\nok: {len(args.models)} model{'s' if len(args.models) != 1 else ''} checked")
+    n = len(args.models)
+    if failed:
+        print(f"{failed} of {n} models failed the check", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    if not args.quiet:
+        print(f"\nok: {n} model{'s' if n != 1 else ''} checked")
     return EXIT_OK
 
 
@@ -412,6 +424,8 @@ def _check_outputs(args, inputs) -> None:
         if value == "-" and attr != "json":
             # Only a JSON report goes to standard output; anything else would be a file named '-'.
             raise MbcalError(f"{option} needs a file name: '-' (standard output) is taken by --json only")
+        if attr == "plot" and value and Path(value).suffix.lower() != ".png":  # PNG data in a .jpg was written
+            raise MbcalError(f"--plot writes a PNG image: give a name ending in .png, got {value}")
         if value and value != "-":
             where = check_output(value, inputs).resolve()
             if where in claimed:

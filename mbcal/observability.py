@@ -184,6 +184,8 @@ class Observability:
     def verdict(self) -> str:
         free = self.n_free
         held = f" free ({len(self.active_bounds)} held at an active bound)" if self.active_bounds else ""
+        if self.observable and free == 0:  # every unknown held: no matrix, no condition number (it read "inf")
+            return f"observable: nothing left free ({len(self.active_bounds)} held at an active bound)"
         if self.observable:
             text = f"observable: rank {self.rank} of {free}{held}, condition number {self.condition:.3g}"
             if self.weak:

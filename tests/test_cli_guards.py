@@ -398,3 +398,23 @@ def test_a_value_given_twice_and_images_without_overlays_are_refused(clicks, cap
     base = ["solve", LEVER, str(clicks), "--estimate", "lever.angle", "-q"]
     assert cli.main([*base, "--set", "lever.length=25cm", "--set", "lever.length=30cm"]) == 2  # the last won
     assert "--set lever.length is given twice" in capsys.readouterr().err
+
+
+def test_a_plot_named_other_than_png_is_refused_before_the_solve(clicks, tmp_path, capsys):
+    """--plot p.jpg wrote PNG data into a .jpg file (render refuses such a name)."""
+    target = tmp_path / "p.jpg"
+    assert cli.main(["solve", LEVER, str(clicks), "--estimate", "lever.angle", "-q", "--plot", str(target)]) == 2
+    assert f"--plot writes a PNG image: give a name ending in .png, got {target}" in capsys.readouterr().err
+    assert not target.exists()
+
+
+def test_check_checks_every_model_it_is_given(tmp_path, capsys):
+    """'mbcal check bad1 good bad2' stopped at bad1: bad2 was never read."""
+    (tmp_path / "bad1.mdl").write_text("param a = \n", encoding="utf-8")
+    (tmp_path / "bad2.mdl").write_text("object x at (0, 0, 1 deg) {}\n", encoding="utf-8")
+    assert cli.main(["check", str(tmp_path / "bad1.mdl"), LEVER, str(tmp_path / "bad2.mdl"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "bad1.mdl:1:11: unexpected end of file" in err
+    assert "bad2.mdl:1:13: a position must be a length (m), got an angle (rad)" in err
+    assert "2 of 3 models failed the check" in err
+    assert cli.main(["check", LEVER, LEVER]) == 0 and "ok: 2 models checked" in capsys.readouterr().out

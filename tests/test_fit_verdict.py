@@ -513,3 +513,26 @@ def test_a_model_written_from_an_accepted_poor_fit_says_what_was_accepted(tmp_pa
         "# verdict: NOT trustworthy: the fit is inconsistent with the stated σ; accepted anyway (--accept-poor-fit)"
         in header
     )
+
+
+def test_a_solve_whose_every_unknown_is_held_at_a_limit_prints_no_condition_number(tmp_path, capsys):
+    """The lever's angle pushed past its limit: 'rank 0 of 0 free (1 held), condition number inf'
+    beside a fit verdict whose condition number was 1: with nothing free there is none to give."""
+    model = tmp_path / "lever.mdl"
+    text = (MODELS / "lever.mdl").read_text(encoding="utf-8")
+    lines = [
+        "param lever.angle = 20 deg limits [-30 deg, 30 deg]" if ln.startswith("param lever.angle") else ln
+        for ln in text.splitlines()
+    ]
+    model.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    clicks = tmp_path / "c.csv"
+    plan = MEASUREMENTS / "lever_plan.csv"
+    assert (
+        main(["simulate", str(MODELS / "lever.mdl"), str(plan), "--set", "lever.angle=60deg", "-o", str(clicks), "-q"])
+        == 0
+    )
+    capsys.readouterr()
+    assert main(["solve", str(model), str(clicks), "--estimate", "lever.angle", "--accept-poor-fit"]) == 0
+    out = capsys.readouterr().out
+    assert "observability: observable: nothing left free (1 held at an active bound)" in out
+    assert "condition number inf" not in out

@@ -164,6 +164,17 @@ CSV_ERRORS = {
         "m.csv:2:32: sigma must be positive, got '-1'",
         None,
     ),
+    # a variance that is not a number (1e300² overflowed, with a NumPy warning before the error)
+    "huge_sigma": (
+        "kind,camera,point,u,v,sigma\nimage_point,left,lever.tip,1,2,1e300\n",
+        "m.csv:2:32: sigma '1e300' is out of range: its square is not a finite positive number",
+        None,
+    ),
+    "tiny_sigma": (
+        "kind,camera,point,u,v,sigma\nimage_point,left,lever.tip,1,2,1e-200\n",
+        "m.csv:2:32: sigma '1e-200' is out of range: its square is not a finite positive number",
+        None,
+    ),
     "wrong_unit": (
         "kind,camera,point,u,v,unit\nimage_point,left,lever.tip,1,2,mm\n",
         "m.csv:2:32: 'image_point' values are in pixels; unit 'mm' does not apply",

@@ -676,6 +676,12 @@ class SetBuilder:
             s = _number(raw, where, "'sigma'", column) * factor
             if not s > 0:
                 raise MeasurementFileError(f"sigma must be positive, got {shown(raw)}", where, field=column)
+            if not 0 < s * s < math.inf:  # its variance must be a number too (1e300² overflowed, with a warning)
+                raise MeasurementFileError(
+                    f"sigma {shown(raw)} is out of range: its square is not a finite positive number",
+                    where,
+                    field=column,
+                )
             sigmas.append(s)
         key = (mm.kind, tuple(sigmas))
         shared = self._covariances.get(key)
