@@ -1467,7 +1467,7 @@ def cmd_watch(args: argparse.Namespace) -> int:
             print(f"update {u.seq} (REJECTED, the scan cannot be read): {u.error}", flush=True)
             return
         flags = "".join(f"\n  drift: {d}" for d in u.drift) + "".join(f"\n  structural misfit: {m}" for m in u.misfits)
-        state = "accepted" if u.accepted else "REJECTED"
+        state = "accepted" if u.accepted else "REJECTED" + (f": {'; '.join(u.doubts)}" if u.doubts else "")
         values = ", ".join(_shown(manager.model, k, v, u.std[k]) for k, v in u.values.items())
         print(f"update {u.seq} ({state}, {u.points} points, χ²/dof {u.reduced_chi2:.3g}): {values}{flags}", flush=True)
 

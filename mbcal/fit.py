@@ -116,6 +116,12 @@ def _upper_gamma(a: float, x: float) -> float:
     return math.exp(log_front) * h
 
 
+def chi2_sf(x: float, df: float) -> float:
+    """P(χ²_df ≥ x): the tail every consistency test of mbcal reads (the fit verdict's, the scan
+    manager's test of an update against its prior)."""
+    return float(_Chi2.sf(float(x), float(df)))
+
+
 class _Chi2:
     """The χ² distribution's upper tail, its logarithm and median, as ``scipy.stats.chi2`` computes
     them (chdtrc; log of it; 2·P⁻¹(df/2, ½)): one tail in plain Python (:func:`_upper_gamma`),
@@ -152,6 +158,7 @@ __all__ = [
     "assess_fit",
     "assess_plan",
     "measurement_groups",
+    "chi2_sf",
 ]
 
 DEFAULT_THRESHOLD = 1e-3

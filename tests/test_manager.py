@@ -3,6 +3,7 @@ surviving kill -9 in the middle of an update."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import signal
@@ -260,3 +261,30 @@ def test_a_link_to_nothing_is_a_rejected_update_and_a_folder_is_no_scan(tmp_path
     assert manager.watch(scans, once=True, report=seen.append) == 1
     assert not seen[0].accepted and "a link to a file that does not exist" in seen[0].error
     assert manager.watch(scans, once=True) == 0  # not taken again until it changes
+
+
+def test_an_update_the_scan_fit_would_not_trust_is_rejected_and_changes_nothing(tmp_path):
+    """The reviewer's cases: a flat wall after the room (it fits some plane of the model at a pose
+    25° off, which only the previous state had pinned) and a scan noisier than its σ were accepted:
+    the state and the calibrated model replaced, and `watch --once` exited 0."""
+    path = _model_file(tmp_path)
+    manager = ModelManager(path, tmp_path / "out", ["room.*"])
+    model = manager.model
+    first = manager.update([_scan(model, ROOM_TRUTH, seed=1)])
+    assert first.accepted and not first.doubts
+    state = (tmp_path / "out" / "state.json").read_bytes()
+    calibrated = (tmp_path / "out" / "room.calibrated.mdl").read_bytes()
+    info = depth_camera(model)
+    wall = np.full((info.height, info.width), 1.0)  # every pixel 1 m away: a flat wall
+    pts, pixels, _ = depth_to_points(wall, info)
+    name = model.frames[info.frame].name
+    flat = Scan(pts, name, sigma=1.5e-3, source="wall", pixels=pixels, focal=min(info.intrinsics[:2]))
+    u = manager.update([flat])
+    assert not u.accepted and any("contradicts the previous state" in d for d in u.doubts), u.doubts
+    noisy = manager.update([dataclasses.replace(_scan(model, ROOM_TRUTH, seed=2, sigma=1.5e-3), sigma=0.4e-3)])
+    assert not noisy.accepted and any("scatter more than σ" in d for d in noisy.doubts), noisy.doubts
+    # neither replaced what the accepted update wrote
+    assert (tmp_path / "out" / "state.json").read_bytes() == state
+    assert (tmp_path / "out" / "room.calibrated.mdl").read_bytes() == calibrated
+    # the scans on their own: the same verdicts from mbcal fit's rule
+    assert not fit_scans(model, [flat], ["room.*"]).ok

@@ -54,6 +54,7 @@ import numpy as np
 from mbcal._jax import jax, jnp, to_device
 from mbcal.cache import enable_compilation_cache
 from mbcal.errors import SolverError
+from mbcal.fit import DEFAULT_THRESHOLD, chi2_sf
 from mbcal.geometry.raycast import distance_to_shapes, surface_distance
 from mbcal.language.model import Model
 from mbcal.measurements.sets import MeasurementSet
@@ -216,6 +217,34 @@ class ScanFit:
     outlier_sigma: float
     units: dict[str, str] = field(default_factory=dict)
     unobservable: list[str] = field(default_factory=list)
+    prior_chi2: float | None = None
+    """With a previous posterior as prior (a manager's update): Σ of its squared rows Lᵀ(x − m) at
+    the estimate, χ² with ``prior_dof`` degrees of freedom when the update agrees with the prior."""
+    prior_dof: int = 0
+    determined_by_scans: bool = True
+    """Whether the scans (and the model's σ priors) determine every unknown without the previous
+    posterior: an estimate that contradicts that posterior is trusted only then (a room that was
+    bumped, seen whole) — not when the posterior is all that pins it (a flat wall that fits a
+    plane of the model at any pose)."""
+
+    @property
+    def prior_p(self) -> float | None:
+        """P(χ² ≥ prior_chi2): below the verdict's threshold (0.001) the estimate contradicts the
+        prior — a jump the prior (widened by the process noise) does not allow, not a drift."""
+        if self.prior_chi2 is None or self.prior_dof <= 0:
+            return None
+        return chi2_sf(self.prior_chi2, self.prior_dof)
+
+    @property
+    def prior_consistent(self) -> bool:
+        p = self.prior_p
+        return p is None or p >= DEFAULT_THRESHOLD
+
+    @property
+    def jumped(self) -> bool:
+        """The estimate contradicts the prior and the scans alone do not determine it: not a move
+        the scans show, a pose only the prior held, moved to where some plane happens to fit."""
+        return not self.prior_consistent and not self.determined_by_scans
 
     @property
     def values(self) -> dict[str, float]:
@@ -262,7 +291,25 @@ class ScanFit:
             and self.reduced_chi2 < 2.0
             and not self.structural
             and self.near_outlier_fraction < 0.5
+            and not self.jumped
         )
+
+    @property
+    def doubts(self) -> list[str]:
+        """Why the fit is not :attr:`ok`, one phrase per reason (empty when it is)."""
+        out = [] if self.converged else ["the solver did not converge"]
+        out += [f"unobservable: {u}" for u in self.unobservable]
+        if self.reduced_chi2 >= 2.0:
+            out.append(f"the inliers scatter more than σ (reduced χ² {self.reduced_chi2:.3g})")
+        out += [f"structural misfit of {m.object}" for m in self.structural]
+        if self.near_outlier_fraction >= 0.5:
+            out.append(f"{100 * self.near_outlier_fraction:.0f} % of the points are outliers")
+        if self.jumped:
+            out.append(
+                f"it contradicts the previous state (χ² {self.prior_chi2:.4g} for {self.prior_dof}, "
+                f"p = {self.prior_p:.3g}), and the scan alone does not determine it"
+            )
+        return out
 
     def prior(self) -> Prior:
         """The posterior as a prior for the next update (information form)."""
@@ -297,11 +344,28 @@ class ScanFit:
             lines.append("structural misfit: " + m.message(self.outlier_sigma, sig))
         for name in self.unobservable:
             lines.append(f"unobservable: {name}")
+        if self.prior_p is not None:
+            lines.append(
+                f"against the prior (the previous state, widened by the process noise): χ² {self.prior_chi2:.4g} "
+                f"for {self.prior_dof}, p = {self.prior_p:.3g}"
+                + (
+                    ""
+                    if self.prior_consistent
+                    else f" < {DEFAULT_THRESHOLD:g}: a move beyond the process noise"
+                    + (
+                        ", which the scan alone determines"
+                        if self.determined_by_scans
+                        else ", which the scan alone does not determine"
+                    )
+                )
+            )
         verdict = "ok" if self.ok else "NOT trustworthy"
         if not self.converged:
             verdict += " (the solver did not converge)"
         elif self.reduced_chi2 >= 2.0:
             verdict += " (the inliers scatter more than σ: a wrong σ, or a model that does not fit)"
+        elif self.jumped:
+            verdict += " (the estimate contradicts the previous state, and the scan alone does not determine it)"
         lines.append(f"verdict: {verdict}")
         return "\n".join(lines)
 
@@ -335,6 +399,10 @@ class ScanFit:
                     for m in self.misfits
                 ],
                 "unobservable": self.unobservable,
+                "prior_chi2": self.prior_chi2,
+                "prior_dof": self.prior_dof,
+                "prior_p": self.prior_p,
+                "determined_by_scans": self.determined_by_scans,
                 "converged": self.converged,
                 "ok": self.ok,
                 "elapsed": self.elapsed,
@@ -889,6 +957,13 @@ def fit_scans(
         cov = np.linalg.inv(info)
     rin = (res / sig)[~outlier]
     chi2 = float(np.sum(rin**2))
+    prior_chi2, prior_dof, alone = None, 0, True
+    if prior is not None:  # its rows are the first ps.size of A: Lᵀ(x − m)
+        rows = A[: ps.size] @ xb - b[: ps.size]
+        prior_chi2, prior_dof = float(rows @ rows), int(np.linalg.matrix_rank(A[: ps.size]))
+        Jq = Jp[ps.size :]  # the model's σ priors, without the previous posterior
+        e_alone = np.linalg.eigvalsh(Jm.T @ Jm + Jq.T @ Jq)
+        alone = bool(np.all(e_alone > max(float(e_alone.max()), 1e-300) * 1e-12))
     dof = max(int((~outlier).sum()) - ps.size, 1)
     misfits = _misfits(model, nearest, outlier, res, o)
     units = {u.name: u.param.unit for u in ps.unknowns}
@@ -913,6 +988,9 @@ def fit_scans(
         converged=converged,
         outlier_sigma=o.outlier_sigma,
         units=units,
+        prior_chi2=prior_chi2,
+        prior_dof=prior_dof,
+        determined_by_scans=alone,
         unobservable=unobservable,
     )
 

@@ -72,6 +72,8 @@ class Update:
     """Why the files could not be read (then nothing was fitted: the update is rejected)."""
     stamp: list[int] = field(default_factory=list)
     """Size and modification time (ns) of an unreadable file: it is tried again once it changes."""
+    doubts: list[str] = field(default_factory=list)
+    """Why a fitted update was rejected: the scan fit's verdict (:attr:`ScanFit.doubts`)."""
 
     def to_json(self) -> dict[str, Any]:
         """The update as strict JSON: a σ that is infinite (an unknown no scan determines) and the
@@ -320,7 +322,9 @@ class ModelManager:
                     moved = abs(fit.values[n] - last.values[n])
                     if moved > self.drift_k * prev_sd[j]:
                         drift.append(f"{n} moved {moved / prev_sd[j]:.1f}σ since update {last.seq}")
-        accepted = fit.converged and not fit.unobservable and fit.near_outlier_fraction < 0.5
+        # the verdict of `mbcal fit` itself (reduced χ², structural misfits included): an update that
+        # fit would call NOT trustworthy replaced the state and the calibrated model
+        accepted = fit.ok
         u = Update(
             seq=len(self.history) + 1,
             time=time.time(),
@@ -337,6 +341,7 @@ class ModelManager:
             mean=[float(v) for v in fit.x],
             information=np.asarray(fit.information).tolist(),
             elapsed=fit.elapsed,
+            doubts=fit.doubts,
         )
         self._append(u)  # the commit point
         self.history.append(u)
