@@ -398,3 +398,18 @@ def test_a_scan_fit_with_an_undetermined_unknown_writes_strict_json_and_exits_1(
     assert abs(report["values"]["ball.x"] - 0.01) < 4 * report["std"]["ball.x"]
     assert strict((out / "ball.fit.json").read_text())["std"] == report["std"]
     assert "∞ (unobservable)" in captured.err and "NOT trustworthy" in captured.err
+
+
+def test_a_scan_leaves_out_points_that_are_not_finite_as_the_readers_do():
+    """A Scan made in Python with some NaN coordinates lost ~99 % of its valid points in the voxel
+    down-sampling (NaN in the voxel keys) and the fit said ok."""
+    from mbcal.range.scans import Scan
+
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-1, 1, (1000, 3))
+    pts[::10, 2] = np.nan
+    scan = Scan(pts)
+    assert len(scan) == 900 and scan.dropped == 100 and "100 point(s)" in scan.notes[-1]
+    assert len(scan.downsampled(0.05)) > 500  # most of the valid points survive down-sampling
+    with pytest.raises(MbcalError, match="no point has finite coordinates"):
+        Scan(np.full((5, 3), np.nan))

@@ -69,6 +69,18 @@ class Scan:
         shape = self.points.shape
         if len(shape) != 2 or shape[1] != 3:
             raise MbcalError(f"scan {self.source or self.frame}: points must be an (N, 3) array, got shape {shape}")
+        finite = np.all(np.isfinite(self.points), axis=1)
+        if not finite.all():
+            # as the readers leave them out: a NaN went into the voxel keys and lost ~99 % of the rest
+            if not finite.any():
+                raise MbcalError(f"scan {self.source or self.frame}: no point has finite coordinates")
+            lost = int((~finite).sum())
+            object.__setattr__(self, "points", np.ascontiguousarray(self.points[finite]))
+            if self.pixels is not None and len(self.pixels) == len(finite):
+                object.__setattr__(self, "pixels", np.asarray(self.pixels)[finite])
+            object.__setattr__(self, "dropped", self.dropped + lost)
+            note = f"{lost} point(s) with a coordinate that is not a finite number left out"
+            object.__setattr__(self, "notes", (*self.notes, note))
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
