@@ -39,7 +39,15 @@ from mbcal.observability import (
 )
 from mbcal.problem import Problem
 from mbcal.results import CalibrationResult, DeferredPoints, PlanAnalysis, ResidualRow, ResidualRows, RunInfo
-from mbcal.solver import SolverConfig, least_squares, random_starts
+from mbcal.solver import (  # noqa: F401  (the size limits: mbcal.api's names since they were made)
+    MAX_DENSE_UNKNOWNS,
+    MAX_RESTARTS,
+    MAX_SOLVER_BYTES,
+    SolverConfig,
+    check_size,
+    least_squares,
+    random_starts,
+)
 from mbcal.structured import (
     DENSE_ANALYSIS_ENTRIES,
     BlockCovariance,
@@ -167,43 +175,6 @@ def _check_seed(seed: Any) -> None:
     """A seed of the random starts or of the noise: NumPy's generators take a whole number ≥ 0."""
     if seed is not None and not whole(seed, 0):
         raise SolverError(f"seed must be a whole number ≥ 0 or None, got {seed!r}")
-
-
-MAX_RESTARTS = 10_000
-"""The most starting points one calibration runs: they run as one vmapped batch, and a few dozen
-are plenty (docs/reliability.md)."""
-
-MAX_DENSE_UNKNOWNS = 10_000
-"""The most unknowns of the dense solver and analysis: each restart holds an n × n normal matrix
-(10 000² × 8 bytes = 800 MB) and the analysis an SVD of the m × n Jacobian."""
-
-MAX_SOLVER_BYTES = 32 * 2**30
-"""The most memory (32 GiB) the batch's dense Jacobians and normal matrices may need, estimated as
-8 bytes × restarts × (rows × unknowns + 2 × unknowns²)."""
-
-
-def check_size(restarts: int, unknowns: int = 0, rows: int = 0) -> None:
-    """Refuse absurd problem sizes before anything is allocated (a :class:`SolverError` with a hint)."""
-    if restarts < 1:
-        raise SolverError(f"restarts must be at least 1, got {restarts}", hint="--restarts N with N ≥ 1")
-    if restarts > MAX_RESTARTS:
-        raise SolverError(
-            f"{restarts} restarts is more than mbcal runs ({MAX_RESTARTS}): they run as one batch in memory",
-            hint="a few dozen restarts are plenty (the default is 16; the CLI's 32)",
-        )
-    if unknowns > MAX_DENSE_UNKNOWNS:
-        raise SolverError(
-            f"{unknowns} unknowns is more than the dense solver handles ({MAX_DENSE_UNKNOWNS}): "
-            f"each restart would hold a {unknowns} × {unknowns} matrix ({8 * unknowns**2 / 2**30:.3g} GiB)",
-            hint="estimate fewer unknowns at once (--estimate), or fix per-configuration parameters that are known",
-        )
-    need = 8.0 * restarts * (float(rows) * unknowns + 2.0 * float(unknowns) ** 2)
-    if need > MAX_SOLVER_BYTES:
-        raise SolverError(
-            f"{restarts} restarts of {unknowns} unknowns over {rows} residual rows would need about "
-            f"{need / 2**30:.3g} GiB of dense Jacobians (the limit is {MAX_SOLVER_BYTES / 2**30:g} GiB)",
-            hint="use fewer restarts (--restarts), fewer unknowns, or fewer measurements",
-        )
 
 
 def _units(problem: Problem) -> dict[str, str]:

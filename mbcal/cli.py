@@ -1384,6 +1384,9 @@ def _check_sigmas(args: argparse.Namespace) -> None:
 
 def _fit_options(args: argparse.Namespace):
     from mbcal.range.fit import FitOptions  # lazy: keeps JAX out of 'mbcal check'
+    from mbcal.solver import check_size
+
+    check_size(args.restarts)  # as solve's: 10,000,000 was JAX's out-of-memory traceback (and watch's empty --out)
 
     for name in ("voxel", "crop"):
         v = getattr(args, name, None)

@@ -42,7 +42,7 @@ from mbcal.language import soa_math as sm
 from mbcal.language.graph import TRANSFORM, ParamRef, depends_on
 from mbcal.language.model import Model
 from mbcal.modeling import parameter_vector
-from mbcal.solver import SolverConfig, Status, least_squares
+from mbcal.solver import SolverConfig, Status, check_size, least_squares
 from mbcal.text import fmt, table
 from mbcal.units import ANGLE, LENGTH
 
@@ -629,6 +629,7 @@ class Kinematics:
         """
         if restarts < 1:
             raise KinematicsError(f"restarts must be ≥ 1, got {restarts}")
+        check_size(restarts)  # 10,000,000 was JAX's out-of-memory traceback
         for name, value in (("tolerance", tolerance), ("angle_tolerance", angle_tolerance)):
             if not (np.isfinite(value) and value > 0):  # a negative one called every reached target unreached
                 raise KinematicsError(f"{name} must be a positive number, got {value}")

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import enum
 import functools
+import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple, Protocol
@@ -57,6 +58,11 @@ __all__ = [
     "LocalParameterisation",
     "least_squares",
     "random_starts",
+    "check_size",
+    "solver_byte_limit",
+    "MAX_RESTARTS",
+    "MAX_DENSE_UNKNOWNS",
+    "MAX_SOLVER_BYTES",
 ]
 
 
@@ -872,14 +878,31 @@ def least_squares(
             forget(recipe_key)
         fun, args, local = given
         return least_squares(fun, x0, args=args, config=config, size=size, bounds=bounds, local=local)
-    x, cost, status, it = (np.asarray(v) for v in out[:4])
-    active = np.asarray(out[4]) if limits is not None else None
+    except jax.errors.JaxRuntimeError as err:
+        raise _out_of_memory(err, x0, size) from None
+    try:
+        x, cost, status, it = (np.asarray(v) for v in out[:4])  # where XLA's run ends (dispatch is asynchronous)
+        active = np.asarray(out[4]) if limits is not None else None
+    except jax.errors.JaxRuntimeError as err:
+        raise _out_of_memory(err, x0, size) from None
     if given[2] is not None and not in_program:  # each result in the coordinates nearest its start
         x = represented_after(given[2], x, x0)
     finite = np.isfinite(cost)
     best = int(np.argmin(np.where(finite, cost, np.inf))) if finite.any() else -1
     return LeastSquaresResult(
         x=x, x0=x0, cost=cost, status=status, iterations=it, best=best, config=config, active=active
+    )
+
+
+def _out_of_memory(err: Exception, x0: np.ndarray, size: int | None) -> Exception:
+    """A batch that did not fit in memory as an error of the input (not a traceback); any other
+    runtime error as it was."""
+    if "RESOURCE_EXHAUSTED" not in str(err):
+        return err
+    rows = "" if size is None else f" over {size} residual rows"
+    return SolverError(
+        f"{x0.shape[0]} restarts of {x0.shape[1]} unknowns{rows} did not fit in memory ({str(err).splitlines()[0]})",
+        hint="use fewer restarts (--restarts), fewer measurements, or a coarser scan (--voxel)",
     )
 
 
@@ -905,3 +928,56 @@ def random_starts(
     if limits is not None:
         out = np.clip(out, limits[0], limits[1])
     return out
+
+
+# ---- sizes refused before anything is allocated (every command and API that solves) ----------------
+
+MAX_RESTARTS = 10_000
+"""The most starting points one calibration runs: they run as one vmapped batch, and a few dozen
+are plenty (docs/reliability.md)."""
+
+MAX_DENSE_UNKNOWNS = 10_000
+"""The most unknowns of the dense solver and analysis: each restart holds an n × n normal matrix
+(10 000² × 8 bytes = 800 MB) and the analysis an SVD of the m × n Jacobian."""
+
+MAX_SOLVER_BYTES = 32 * 2**30
+"""The most memory (32 GiB) the batch's dense Jacobians and normal matrices may need, estimated as
+8 bytes × restarts × (rows × unknowns + 2 × unknowns²); less on a machine with less than twice
+that memory (:func:`solver_byte_limit`)."""
+
+
+def solver_byte_limit() -> int:
+    """:data:`MAX_SOLVER_BYTES`, or half the machine's physical memory where that is less: a batch
+    the machine cannot hold was a JAX out-of-memory traceback (10 000 restarts of a scan fit on
+    24 GiB), not an error before the work."""
+    try:
+        physical = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (AttributeError, OSError, ValueError):  # not on this platform: the fixed limit
+        return MAX_SOLVER_BYTES
+    return min(MAX_SOLVER_BYTES, physical // 2) if physical > 0 else MAX_SOLVER_BYTES
+
+
+def check_size(restarts: int, unknowns: int = 0, rows: int = 0) -> None:
+    """Refuse absurd problem sizes before anything is allocated (a :class:`SolverError` with a hint)."""
+    if restarts < 1:
+        raise SolverError(f"restarts must be at least 1, got {restarts}", hint="--restarts N with N ≥ 1")
+    if restarts > MAX_RESTARTS:
+        raise SolverError(
+            f"{restarts} restarts is more than mbcal runs ({MAX_RESTARTS}): they run as one batch in memory",
+            hint="a few dozen restarts are plenty (the default is 16; the CLI's 32)",
+        )
+    if unknowns > MAX_DENSE_UNKNOWNS:
+        raise SolverError(
+            f"{unknowns} unknowns is more than the dense solver handles ({MAX_DENSE_UNKNOWNS}): "
+            f"each restart would hold a {unknowns} × {unknowns} matrix ({8 * unknowns**2 / 2**30:.3g} GiB)",
+            hint="estimate fewer unknowns at once (--estimate), or fix per-configuration parameters that are known",
+        )
+    need = 8.0 * restarts * (float(rows) * unknowns + 2.0 * float(unknowns) ** 2)
+    limit = solver_byte_limit()
+    if need > limit:
+        raise SolverError(
+            f"{restarts} restarts of {unknowns} unknowns over {rows} residual rows would need about "
+            f"{need / 2**30:.3g} GiB of dense Jacobians (the limit is {limit / 2**30:.3g} GiB: "
+            "32 GiB, or half the machine's memory where that is less)",
+            hint="use fewer restarts (--restarts), fewer unknowns, or fewer measurements",
+        )

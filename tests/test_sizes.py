@@ -14,8 +14,9 @@ import mbcal
 from mbcal.api import MAX_DENSE_UNKNOWNS, MAX_RESTARTS, MAX_SOLVER_BYTES, check_size
 from mbcal.cli import main
 from mbcal.errors import SolverError
+from mbcal.solver import solver_byte_limit
 
-from conftest import MEASUREMENTS, MODELS
+from conftest import MEASUREMENTS, MODELS, ROOT
 
 ONE_UNKNOWN_PER_CONFIGURATION = """
 param q = 0 m per configuration
@@ -55,7 +56,7 @@ def test_a_100000_dimensional_unknown_vector_is_refused_on_the_dense_path():
 
 def test_the_limits():
     check_size(32, 6, 96)  # the room
-    check_size(MAX_RESTARTS, 15, 10_000)
+    check_size(MAX_RESTARTS, 15, 1_000)  # (within half the memory of a 4 GiB machine)
     with pytest.raises(SolverError, match="at least 1"):
         check_size(0)
     with pytest.raises(SolverError, match="unknowns is more"):
@@ -65,7 +66,8 @@ def test_the_limits():
     assert "--restarts" in info.value.hint
     check_size(32, 6, 2 * 10**6)  # a million image points (two residuals each), 32 restarts: accepted
     # ... and the limit is where the dense Jacobians (8 bytes × restarts × rows × unknowns) pass it
-    rows = MAX_SOLVER_BYTES // (8 * 32 * 6)
+    rows = solver_byte_limit() // (8 * 32 * 6)
+    assert solver_byte_limit() <= MAX_SOLVER_BYTES
     check_size(32, 6, rows - 20)
     with pytest.raises(SolverError, match="GiB of dense Jacobians"):
         check_size(32, 6, rows + 1)
@@ -106,3 +108,35 @@ def test_a_million_rows_stream_with_bounded_memory(tmp_path):
     assert int(count) == n
     # Measured: about 700 bytes a measurement (0.7 GB) in about 13 s; the file's 70 MB text is never held.
     assert int(growth) < n * 1024, int(growth) / n
+
+
+def test_a_batch_that_does_not_fit_in_memory_is_an_error_of_the_input():
+    """10,000 restarts of a scan fit: XLA's RESOURCE_EXHAUSTED came out as a traceback, exit 1."""
+    from mbcal.solver import _out_of_memory
+
+    err = _out_of_memory(
+        RuntimeError("RESOURCE_EXHAUSTED: Out of memory allocating 100570886920 bytes."), np.zeros((10_000, 6)), 24588
+    )
+    assert isinstance(err, SolverError) and "--restarts" in err.hint
+    assert str(err).startswith("10000 restarts of 6 unknowns over 24588 residual rows did not fit in memory")
+    other = RuntimeError("INTERNAL: something else")
+    assert _out_of_memory(other, np.zeros((1, 6)), None) is other  # any other failure as it was
+
+
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["fit", "models/room_depth.mdl", "scan.png", "--estimate", "room.*"],
+        ["watch", "models/room_depth.mdl", "--scans", "scans", "--out", "out", "--estimate", "room.*", "--once"],
+        ["kinematics", "models/arm7.mdl", "--point", "hand.tip", "--chain", "arm.q*", "--ik", "0.3,-0.35,0.95"],
+    ],
+)
+def test_every_command_refuses_more_restarts_than_mbcal_runs_before_the_work(command, tmp_path, monkeypatch, capsys):
+    """solve and calibrate-camera refused more than 10,000 restarts; fit, watch and kinematics ran
+    into JAX's out-of-memory traceback (and watch left its --out folder behind)."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "scans").mkdir()
+    command = [str(ROOT / c) if c.startswith("models/") else c for c in command]
+    assert main([*command, "--restarts", "10000000"]) == 2
+    assert "10000000 restarts is more than mbcal runs (10000)" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()

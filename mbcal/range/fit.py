@@ -62,7 +62,7 @@ from mbcal.modeling import Needs, modeler
 from mbcal.outputs import finite_or_null
 from mbcal.params import ParameterSet
 from mbcal.range.scans import Scan
-from mbcal.solver import Loss, SolverConfig, least_squares, random_starts
+from mbcal.solver import Loss, SolverConfig, check_size, least_squares, random_starts
 from mbcal.units import at_least, whole
 
 Array = Any
@@ -908,6 +908,7 @@ def fit_scans(
     args = arguments(groups)
     # A fit warm-started from a previous posterior (the manager) starts at a tracked minimum: no probes.
     probes = o.probe_rounds if prior is None else 0
+    check_size(max(1, o.restarts), ps.size, m + 2 * ps.size)  # the batch fits in memory, or a clear error
     starts = random_starts(x, ps.lower, ps.upper, max(1, o.restarts), o.seed, limits=ps.bounds)
     # Graduated robustness: a wide loss first, so points that moved far (a lever that turned) still
     # pull before the nominal loss would dismiss them as outliers.  The loss with the scale k·c on
