@@ -112,6 +112,12 @@ def test_fit_writes_its_json_by_the_schema(tmp_path, capsys):
     captured = capsys.readouterr()
     jsonschema.validate(json.loads(captured.out), schema)
     assert "room.x" in captured.err
+    # σ stated 10× too small: not trustworthy, and the model written says so (it read as a clean one)
+    doubted = tmp_path / "doubted"
+    assert main(["fit", ROOM, str(tmp_path / "depth.png"), "--estimate", "room.*", "--sigma", "0.0001", "-q",
+                 "--out", str(doubted)]) == 1  # fmt: skip
+    header = (doubted / "room_depth.calibrated.mdl").read_text(encoding="utf-8").split("param", 1)[0]
+    assert "# NOT A TRUSTWORTHY FIT: " in header and "the inliers scatter more than σ (reduced χ²" in header
 
 
 def test_a_fit_that_fails_leaves_no_output_folder(tmp_path, capsys):

@@ -144,6 +144,8 @@ def fit_files(
     written: list[Path] = []
     if out is not None:
         note = [f"estimated by 'mbcal fit' from {', '.join(str(p) for p in scan_paths)}"]
+        if not fit.ok:  # a model written from a fit not to be trusted says so where it is read (as solve's)
+            note.append("NOT A TRUSTWORTHY FIT: " + "; ".join(fit.doubts))
         written = _outputs(fit, model, Path(out), Path(model_path).stem, note)
     return fit, written
 
