@@ -288,3 +288,25 @@ def test_an_update_the_scan_fit_would_not_trust_is_rejected_and_changes_nothing(
     assert (tmp_path / "out" / "room.calibrated.mdl").read_bytes() == calibrated
     # the scans on their own: the same verdicts from mbcal fit's rule
     assert not fit_scans(model, [flat], ["room.*"]).ok
+
+
+def test_a_scan_file_that_changes_after_it_was_taken_is_taken_again(tmp_path):
+    """A copy that paused half-way was taken (the size had settled) and never read again: the rest
+    of the scan was lost without a word.  A taken file is now read again when its size or time
+    changes; one that has not changed is not (nor after a restart)."""
+    path = _model_file(tmp_path)
+    model = mbcal.load_model(path)
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    depth = render_depth(model, ROOM_TRUTH)
+    write_depth_png(scans / "a.png", add_depth_noise(depth, 1.5e-3, 0.0, seed=1))
+    manager = ModelManager(path, tmp_path / "out", ["room.*"])
+    assert manager.watch(scans, once=True) == 1
+    assert manager.watch(scans, once=True) == 0  # unchanged: not again
+    write_depth_png(scans / "a.png", add_depth_noise(depth, 1.5e-3, 0.0, seed=2))  # the file changed
+    os.utime(scans / "a.png", ns=(time.time_ns(), time.time_ns() + 10**9))
+    resumed = ModelManager(path, tmp_path / "out", ["room.*"])  # from the journal, as after a restart
+    assert resumed.watch(scans, once=True) == 1
+    assert [u.files for u in resumed.history] == [[str((scans / "a.png").resolve())]] * 2
+    assert all(len(u.stamp) == 2 for u in resumed.history)
+    assert ModelManager(path, tmp_path / "out", ["room.*"]).watch(scans, once=True) == 0

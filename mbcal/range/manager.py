@@ -71,7 +71,9 @@ class Update:
     error: str = ""
     """Why the files could not be read (then nothing was fitted: the update is rejected)."""
     stamp: list[int] = field(default_factory=list)
-    """Size and modification time (ns) of an unreadable file: it is tried again once it changes."""
+    """Size and modification time (ns) of the file when it was read (by the watch): one that could
+    not be read is tried again once it changes, one that was fitted is taken again once it changes
+    (a copy that paused half-way and went on)."""
     doubts: list[str] = field(default_factory=list)
     """Why a fitted update was rejected: the scan fit's verdict (:attr:`ScanFit.doubts`)."""
 
@@ -286,9 +288,11 @@ class ModelManager:
     # ---- updates ---------------------------------------------------------------------------------------
 
     @property
-    def processed(self) -> set[str]:
-        """The files taken: fitted, accepted or not (a file that could not be read is not)."""
-        return {f for u in self.history if not u.error for f in u.files}
+    def processed(self) -> dict[str, list[int]]:
+        """The files taken — fitted, accepted or not (a file that could not be read is not) — with
+        their size and time when taken (empty from a journal older than that record): a file that
+        changes after it was taken (a copy that paused half-way) is taken again."""
+        return {f: list(u.stamp) for u in self.history if not u.error for f in u.files}
 
     @property
     def unreadable(self) -> dict[str, list[int]]:
@@ -309,7 +313,7 @@ class ModelManager:
         cov = np.linalg.pinv(Lam) + np.diag(q**2)
         return Prior(self.prior.names, self.prior.mean, np.linalg.inv(cov))
 
-    def update(self, scans: Sequence[Scan], files: Sequence[str] = ()) -> Update:
+    def update(self, scans: Sequence[Scan], files: Sequence[str] = (), stamp: Sequence[int] = ()) -> Update:
         """Fit one batch, record it, and (when accepted) write the state and the calibrated model."""
         prior = self._widened_prior()
         last = self.last_accepted
@@ -344,6 +348,7 @@ class ModelManager:
             information=np.asarray(fit.information).tolist(),
             elapsed=fit.elapsed,
             doubts=fit.doubts,
+            stamp=[int(v) for v in stamp],
         )
         self._append(u)  # the commit point
         self.history.append(u)
@@ -352,9 +357,11 @@ class ModelManager:
             self._write_state(u)
         return u
 
-    def update_files(self, paths: Sequence[str | os.PathLike]) -> Update:
+    def update_files(self, paths: Sequence[str | os.PathLike], stamp: Sequence[int] = ()) -> Update:
+        """One update from these files; ``stamp``: the size and time of a single file as the watch
+        saw it (recorded, so that the file is taken again when it changes)."""
         scans = [load_scan(p, self.model, sensor=self.sensor, frame=self.frame, sigma=self.sigma) for p in paths]
-        return self.update(scans, [str(Path(p).resolve()) for p in paths])
+        return self.update(scans, [str(Path(p).resolve()) for p in paths], stamp)
 
     def _unreadable(self, path: Path, stamp: list[int], err: MbcalError) -> Update:
         """Record a scan file that cannot be read (a rejected update without a fit), so that the
@@ -402,8 +409,9 @@ class ModelManager:
         sizes: dict[Path, tuple[int, float]] = {}
         while True:
             for p in sorted(src.iterdir()):
-                if p.suffix.lower() not in SCAN_SUFFIXES or p.name.startswith(".") or str(p.resolve()) in done:
-                    continue
+                taken = done.get(str(p.resolve()))
+                if p.suffix.lower() not in SCAN_SUFFIXES or p.name.startswith(".") or taken == []:
+                    continue  # (taken == []: taken before stamps were recorded, never again)
                 try:
                     info = p.stat()
                 except OSError:  # a link to nothing (a rejected update), or a file removed meanwhile
@@ -418,8 +426,8 @@ class ModelManager:
                     if not stat.S_ISREG(info.st_mode):
                         continue  # a folder that happens to end in .ply: no scan
                     stamp = [info.st_size, info.st_mtime_ns]
-                    if unreadable.get(str(p.resolve())) == stamp:
-                        continue  # could not be read, and has not changed since
+                    if unreadable.get(str(p.resolve())) == stamp or taken == stamp:
+                        continue  # could not be read, or taken, and has not changed since
                     size = info.st_size
                     seen = sizes.get(p)
                     now = time.monotonic()
@@ -428,8 +436,8 @@ class ModelManager:
                             sizes[p] = (size, now)
                         continue
                     try:
-                        u = self.update_files([p])
-                        done.add(str(p.resolve()))
+                        u = self.update_files([p], stamp)
+                        done[str(p.resolve())] = stamp
                     except MbcalError as err:  # one bad file does not stop the watch (it is in the journal)
                         u = self._unreadable(p, stamp, err)
                         unreadable[str(p.resolve())] = stamp
