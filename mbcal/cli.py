@@ -906,7 +906,7 @@ def cmd_kinematics(args: argparse.Namespace) -> int:
     if args.json:
         _write_json(data, args.json, [args.model])
     _say(args, text)
-    trouble = data["singular"] or (ik is not None and not ik.all_reached)
+    trouble = data["singular"] or bool(data["outside_limits"]) or (ik is not None and not ik.all_reached)
     return EXIT_UNTRUSTED if trouble else EXIT_OK
 
 

@@ -805,6 +805,10 @@ class Kinematics:
                 title="\nθ",
             )
         )
+        # a configuration the joints cannot take (IK holds these limits exactly): said, not silent
+        outside = [name for k, name in enumerate(self.joints) if not self.lower[k] <= theta[k] <= self.upper[k]]
+        if outside:
+            lines.append(f"outside the joint limits: {', '.join(outside)} (the robot cannot take this configuration)")
         rpy = np.degrees(rpy_from_matrix(R))
         lines.append(
             f"\nf(θ): position ({', '.join(fmt(v, 6) for v in p)}) m, "
@@ -857,6 +861,7 @@ class Kinematics:
             },
             "manipulability": w,
             "singular": singular,
+            "outside_limits": outside,
         }
         if ik is not None:
             lines.append("\n" + ik.report(units=units))

@@ -469,3 +469,9 @@ def test_the_command_exit_status_for_unreachable_singular_and_bad_input(capsys):
     assert "'x' is not a number" in err and "did you mean 'hand.tip'" in err
     urdf = str(URDF)
     assert main(["kinematics", urdf, "--point", "tool_center", "--joints", "0.1,0.2,0.3,-0.4,0.5,0.6,0.7", "-q"]) == 0
+    # joint1 past 166°, joint4 past 28.6°: said and exit 1 (a table of f(θ) and J at a configuration
+    # the robot cannot take was printed without a word, exit 0)
+    capsys.readouterr()
+    assert main(["kinematics", urdf, "--point", "tool_center", "--joints", "3,0,0,1,0,0,0", "--json", "-"]) == 1
+    out = capsys.readouterr().out
+    assert json.loads(out[out.index("{") :])["outside_limits"] == ["joint1.q", "joint4.q"]
