@@ -535,7 +535,7 @@ def _load_or_export(export: Any, folder: Path, key: str, jitted: Callable, examp
         try:
             if not source_edited(exact=True):  # a module imported while it traced counts too
                 path.parent.mkdir(parents=True, exist_ok=True)
-                atomic_write(path, bytes(program.serialize()))
+                atomic_write(path, bytes(program.serialize()), at_once=True)
                 trim_programs(folder, limit, keep=path)
         except OSError:
             pass  # a read-only cache: still correct, only slower next time

@@ -31,6 +31,7 @@ __all__ = [
     "check_output",
     "current_umask",
     "finite_or_null",
+    "make_output_folder",
     "OutputError",
 ]
 
@@ -166,11 +167,13 @@ def refuse_inputs(paths: Iterable[str | os.PathLike[str]]) -> None:
 
 
 @contextlib.contextmanager
-def atomic_writer(path: str | os.PathLike[str], mode: str = "wb") -> Iterator:
+def atomic_writer(path: str | os.PathLike[str], mode: str = "wb", *, at_once: bool = False) -> Iterator:
     """Open a temporary file that replaces ``path`` only when the block finishes without error.
 
     The temporary file lies in the target's folder (so the rename is atomic), is flushed to disk,
-    gets the target's permissions (see the module doc) and is renamed over the target.
+    gets the target's permissions (see the module doc) and is renamed over the target — inside an
+    :func:`all_or_nothing` block when the block ends, unless ``at_once`` (the cache's files: not a
+    command's outputs, and another process may trim or clear the folder meanwhile).
     """
     target = Path(path)
     refuse_inputs([target])
@@ -188,7 +191,7 @@ def atomic_writer(path: str | os.PathLike[str], mode: str = "wb") -> Iterator:
             os.fsync(handle.fileno())
         os.chmod(tmp, _mode_for(target))
         check_interrupted()  # an interrupt Python swallowed still stops the write
-        pending = _PENDING.get()
+        pending = None if at_once else _PENDING.get()
         if pending is not None:  # renamed with the command's other outputs (all_or_nothing)
             pending.append((tmp, target))
         else:
@@ -203,6 +206,21 @@ def atomic_writer(path: str | os.PathLike[str], mode: str = "wb") -> Iterator:
 _PENDING: contextvars.ContextVar[list[tuple[str, Path]] | None] = contextvars.ContextVar(
     "mbcal_pending_outputs", default=None
 )
+# The folders make_output_folder made in the block (deepest first): removed again, when empty, if
+# the block fails (an interrupted solve left its --overlay folder behind, empty).
+_MADE: contextvars.ContextVar[list[Path] | None] = contextvars.ContextVar("mbcal_made_folders", default=None)
+
+
+def make_output_folder(path: str | os.PathLike[str]) -> Path:
+    """Make the folder ``path`` (and missing parents) for a command's outputs: within an
+    :func:`all_or_nothing` block, the folders made are removed again, when empty, if it fails."""
+    folder = Path(path)
+    missing = [p for p in (folder, *folder.parents) if not p.exists()]
+    folder.mkdir(parents=True, exist_ok=True)
+    made = _MADE.get()
+    if made is not None:
+        made.extend(missing)
+    return folder
 
 
 @contextlib.contextmanager
@@ -213,16 +231,21 @@ def all_or_nothing() -> Iterator[None]:
     leaves none of its outputs, not some.  Not for work whose files must appear as it goes (the
     model manager, the studio's Save), nor for a block that reads back what it wrote."""
     pending: list[tuple[str, Path]] = []
-    token = _PENDING.set(pending)
+    made: list[Path] = []
+    token, made_token = _PENDING.set(pending), _MADE.set(made)
     try:
         yield
     except BaseException:
         for tmp, _ in pending:
             with contextlib.suppress(OSError):
                 os.unlink(tmp)
+        for folder in made:  # deepest first; one that holds anything else stays
+            with contextlib.suppress(OSError):
+                os.rmdir(folder)
         raise
     finally:
         _PENDING.reset(token)
+        _MADE.reset(made_token)
     with _interrupts_held():
         for k, (tmp, target) in enumerate(pending):
             try:
@@ -250,7 +273,8 @@ def _interrupts_held() -> Iterator[None]:
         block(signal.SIG_SETMASK, previous)
 
 
-def atomic_write(path: str | os.PathLike[str], data: bytes | str) -> None:
-    """Write ``data`` to ``path`` atomically (text is written as UTF-8)."""
-    with atomic_writer(path, "wb") as handle:
+def atomic_write(path: str | os.PathLike[str], data: bytes | str, *, at_once: bool = False) -> None:
+    """Write ``data`` to ``path`` atomically (text is written as UTF-8); ``at_once``: see
+    :func:`atomic_writer`."""
+    with atomic_writer(path, "wb", at_once=at_once) as handle:
         handle.write(data.encode("utf-8") if isinstance(data, str) else data)

@@ -541,7 +541,7 @@ def prepare(
         if path is not None and not source_edited(exact=True):
             with contextlib.suppress(Exception):  # a read-only cache: still correct, only slower next time
                 path.parent.mkdir(parents=True, exist_ok=True)
-                atomic_write(path, recipe.to_json().encode("utf-8"))
+                atomic_write(path, recipe.to_json().encode("utf-8"), at_once=True)
     try:
         inputs = recipe.inputs(args)
         digest = recipe.digest

@@ -134,8 +134,32 @@ def test_a_solve_interrupted_while_drawing_its_overlays_leaves_none_of_its_outpu
     folder = tmp_path / "ov"
     outputs = ["--json", str(tmp_path / "r.json"), "--write-model", str(tmp_path / "m.mdl"), "--overlay", str(folder)]
     assert main(["solve", model, str(clicks), "--estimate", "lever.angle", "-q", *outputs]) == 130
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["clicks.csv", "ov"] and not list(folder.iterdir())
+    # nor the overlay folder it made for them (it was left behind, empty)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["clicks.csv"]
     monkeypatch.setattr(overlays, "calibration_overlays", drawn)
     assert main(["solve", model, str(clicks), "--estimate", "lever.angle", "-q", *outputs]) == 0
     assert sorted(p.name for p in folder.iterdir()) == ["eye_after.png", "eye_before.png"]
     assert (tmp_path / "r.json").is_file() and (tmp_path / "m.mdl").is_file()
+
+
+def test_the_caches_files_are_not_held_back_with_a_commands_outputs(tmp_path):
+    """all_or_nothing held back the cache's writes too: the cache's trimming (a small
+    MBCAL_CACHE_MAX_MB) removed their temporary files meanwhile, the rename at the end failed and
+    took the command's report with it (exit 2, 'No such file or directory: ….part')."""
+    import subprocess
+    import sys
+
+    clicks = tmp_path / "clicks.csv"
+    model = str(ROOT / "models" / "lever.mdl")
+    plan = str(ROOT / "measurements" / "lever_plan.csv")
+    env = {**os.environ, "MBCAL_CACHE_DIR": str(tmp_path / "cache"), "MBCAL_CACHE_MAX_MB": "0.01"}
+    env.pop("MBCAL_CACHE", None)
+
+    def mbcal(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "mbcal", *args], env=env, capture_output=True, text=True)
+
+    assert mbcal("simulate", model, plan, "--set", "lever.angle=35deg", "-o", str(clicks), "-q").returncode == 0
+    done = mbcal("solve", model, str(clicks), "--estimate", "lever.angle", "-q", "--json", str(tmp_path / "r.json"))
+    assert done.returncode == 0, done.stderr
+    assert (tmp_path / "r.json").is_file()
+    assert not [p for p in (tmp_path / "cache").rglob("*.part")]

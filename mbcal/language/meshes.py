@@ -159,6 +159,6 @@ def _write_entry(entry: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
     np.savez(buf, vertices=vertices, faces=faces)
     try:
         entry.parent.mkdir(parents=True, exist_ok=True)
-        atomic_write(entry, buf.getvalue())
+        atomic_write(entry, buf.getvalue(), at_once=True)
     except OSError:
         pass  # a read-only cache: still correct, only slower next time

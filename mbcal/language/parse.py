@@ -158,7 +158,7 @@ def parse_text_cached(text: str, path: str) -> tuple[ast.Statement, ...]:
             data = json.dumps(_to_json(statements), separators=(",", ":")).encode()
         entry.parent.mkdir(parents=True, exist_ok=True)
         _make_room(entry.parent)
-        atomic_write(entry, data)
+        atomic_write(entry, data, at_once=True)
     except (OSError, ValueError, TypeError, RecursionError):
         pass  # a read-only cache: still correct, only slower next time
     return statements

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from mbcal._jax import jax
+from mbcal.outputs import make_output_folder
 from mbcal.render.views import (
     Layer,
     draw_overlay,
@@ -88,8 +89,7 @@ def calibration_overlays(
     """
     problem = result.problem
     model = problem.model
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir = make_output_folder(out_dir)
     backgrounds = {model.resolve("camera", k): v for k, v in (backgrounds or {}).items()}
     groups: dict[tuple[str, str], list] = {pair: [] for pair in _image_pairs(result.residuals)}
     for r in result.residuals:

@@ -38,7 +38,7 @@ from mbcal.language import ir
 from mbcal.language.model import Model
 from mbcal.measurements.sets import MeasurementSet, measurements_from_records
 from mbcal.modeling import Needs, modeler, parameter_vector
-from mbcal.outputs import finite_or_null
+from mbcal.outputs import finite_or_null, make_output_folder
 from mbcal.params import ParameterSet
 from mbcal.render.views import Layer, draw_overlay, load_image, save_png
 from mbcal.solver import SolverConfig
@@ -667,8 +667,7 @@ def planned_reprojections(model, measurements, images: Mapping[str, str], out_di
 
 def reprojection_images(cc: CameraCalibration, images: Mapping[str, str], out_dir, *, vector_scale: float = 10.0):
     """Write each view's image with its measured (blue) and reprojected (red) corners."""
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir = make_output_folder(out_dir)
     model = cc.result.problem.model
     written = []
     groups: dict[tuple[str, str], list] = {}
@@ -889,8 +888,7 @@ def synthesize_images(
     ``truth`` sets the camera's true parameters (intrinsics, distortion, a rig's pose);
     ``noise`` is the σ of Gaussian pixel noise (grey levels).
     """
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir = make_output_folder(out_dir)
     info = model.target(target)
     cam = model.cameras[model.camera_index(camera)] if camera else model.cameras[0]
     rng = np.random.default_rng(seed)

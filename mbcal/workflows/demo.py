@@ -22,7 +22,7 @@ from mbcal.language import load_model
 from mbcal.language.model import Model
 from mbcal.measurements.io import read_measurements, write_measurements
 from mbcal.modeling import modeler
-from mbcal.outputs import atomic_write, check_output_folder
+from mbcal.outputs import atomic_write, check_output_folder, make_output_folder
 from mbcal.render.overlays import calibration_overlays, residual_plot
 from mbcal.render.views import render_view, save_png, shared_context
 from mbcal.resources import bundled
@@ -49,8 +49,7 @@ def run_demo(out: Path, *, restarts: int = 32, seed: int = 0, quiet: bool = Fals
     """Run the demo, write its files into ``out`` and print the report; returns the exit status."""
     say = (lambda *a: None) if quiet else print
     step = progress.step if progress else (lambda _m: None)
-    out = check_output_folder(out, "the demo's output")
-    out.mkdir(parents=True, exist_ok=True)
+    out = make_output_folder(check_output_folder(out, "the demo's output"))
 
     step("loading the factory corner model and the 24-point stereo plan")
     model_path = bundled("models/teleexistence.mdl")
