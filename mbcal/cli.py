@@ -200,8 +200,9 @@ def parse_assignments(items: Sequence[str], model=None, option: str = "--set") -
             raise MbcalError(f"{option} {name}: value must be finite")
         if model is not None and dim is not None:
             for param in model.match_params(name.split("@", 1)[0]):
-                # declared without a unit: a plain number (a focal length in pixels took '600mm' as 0.6)
-                _check_dimension(dim, unit, param, option, model.param(param).dim or DIMENSIONLESS)
+                # declared without a unit: what its places require (a focal length in pixels took
+                # '600mm' as 0.6; a box's size takes '30cm'), else a plain number
+                _check_dimension(dim, unit, param, option, model.param(param).given_dim or DIMENSIONLESS)
         if name in out:  # which one was meant? (the last won in silence)
             raise MbcalError(f"{option} {name} is given twice")
         out[name] = value
@@ -884,6 +885,8 @@ def _quantities(text: str, option: str, meant: Sequence[tuple[str, Any]] = ()) -
 def cmd_kinematics(args: argparse.Namespace) -> int:
     from mbcal.kinematics import Kinematics  # lazy: keeps JAX out of 'mbcal check'
 
+    _check_restarts(args)  # IK's starts: checked with or without --ik, before the model is read
+
     _check_outputs(args, [args.model])
     model = _load(args.model, args, [args.model])
     kin = Kinematics(
@@ -1384,9 +1387,6 @@ def _check_sigmas(args: argparse.Namespace) -> None:
 
 def _fit_options(args: argparse.Namespace):
     from mbcal.range.fit import FitOptions  # lazy: keeps JAX out of 'mbcal check'
-    from mbcal.solver import check_size
-
-    check_size(args.restarts)  # as solve's: 10,000,000 was JAX's out-of-memory traceback (and watch's empty --out)
 
     for name in ("voxel", "crop"):
         v = getattr(args, name, None)
@@ -1411,8 +1411,18 @@ def _range_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sigma", type=float, metavar="M", help="σ of a point in m (default 2 mm; depth: 1 mm + 0.1 %% z)")
 
 
+def _check_restarts(args: argparse.Namespace) -> None:
+    """--restarts within what mbcal runs, before any file is read (as solve's): 10,000,000 was JAX's
+    out-of-memory traceback in fit, watch and kinematics (and watch's empty --out)."""
+    from mbcal.solver import check_size  # lazy: keeps JAX out of 'mbcal check'
+
+    check_size(args.restarts)
+
+
 def cmd_fit(args: argparse.Namespace) -> int:
     from mbcal.range.manager import fit_files  # lazy: keeps JAX out of 'mbcal check'
+
+    _check_restarts(args)
 
     _distinct(args.scans)
     _check_outputs(args, [args.model, *args.scans])
@@ -1440,6 +1450,8 @@ def _shown(model, name: str, value: float, std: float) -> str:
 
 def cmd_watch(args: argparse.Namespace) -> int:
     from mbcal.range.manager import ModelManager  # lazy: keeps JAX out of 'mbcal check'
+
+    _check_restarts(args)
 
     # σ per update, with a unit of the unknowns' dimension (lever.angle=0.5deg) or in SI units; read
     # with the model before the manager makes its folder, so a bad option leaves nothing behind

@@ -1013,3 +1013,60 @@ def test_known_values_given_to_the_library_keep_within_the_hard_limits(plain_f):
     with pytest.raises(ParameterError, match=r"'lever.length': 0.45 m is outside the hard limits"):
         ParameterSet(plain_f, ["lever.angle"], known={"lever.length": 0.45})
     assert ParameterSet(plain_f, ["lever.angle"], known={"lever.length": 0.3}).size == 1
+
+
+def test_a_parameter_declared_without_a_unit_takes_the_unit_its_places_require(tmp_path, monkeypatch, capsys):
+    """A review of the fix above: 'param lever.length = 0.25' used as a box's size and a point's
+    offset is a length in SI (a free literal), and '30 cm' for it was refused as 'a plain number'.
+    What the places of such a parameter require decides (ParamInfo.given_dim); a focal length in
+    pixels still refuses 'mm'."""
+    from mbcal.cli import main
+
+    text = (MODELS / "lever.mdl").read_text(encoding="utf-8")
+    free = "\n".join(
+        "param lever.length = 0.25" if ln.startswith("param lever.length") else ln for ln in text.splitlines()
+    )
+    model_path = write(tmp_path, "free.mdl", free + "\n")
+    model = load_model(model_path)
+    info = model.param("lever.length")
+    assert info.dim is None and info.given_dim == load_model(MODELS / "lever.mdl").param("lever.length").dim
+    monkeypatch.chdir(tmp_path)
+    ms = read_measurements(known_csv(tmp_path, "30 cm", "", "lever.length"), model)
+    assert ms.known == {"lever.length": pytest.approx(0.3)}
+    plan = str(MEASUREMENTS / "lever_plan.csv")
+    assert main(["simulate", str(model_path), plan, "--set", "lever.length=30cm", "-o", "s.csv", "-q"]) == 0
+    assert main(["simulate", str(model_path), plan, "--set", "lever.length=30deg", "-o", "t.csv", "-q"]) == 2
+    assert "'deg' is not a unit of lever.length, which is a length" in capsys.readouterr().err
+
+
+def test_a_value_at_its_limit_after_a_unit_conversion_is_within_it():
+    """'35 cm' is 0.35000000000000003 m: a limit of 0.35 m refused it, showing both as 0.35."""
+    from mbcal.language.model import ParamInfo
+    from mbcal.units import LENGTH
+
+    info = ParamInfo("a", 0, 0.25, None, None, None, False, LENGTH, limit_lower=0.1, limit_upper=0.35)
+    assert 35 * 0.01 > 0.35 and info.outside_limits(35 * 0.01) is None
+    assert info.outside_limits(0.3500001) == "0.3500001 m is outside the hard limits of a [0.1, 0.35] m"
+
+
+def test_a_plugins_length_data_are_converted_without_naming_them():
+    """unit_data made the conversion of a length kind's data opt-in: a plugin written before it,
+    with a measured point in its data, read '100, mm' as 100 m.  By default a length kind's data
+    that are not whole-number indices are converted, as before; the indices never."""
+    from mbcal.measurements.protocol import MeasurementModel
+
+    class Older(MeasurementModel):
+        kind = "older"
+        values = ("distance",)
+        data = ("x", "y", "z", "index")
+        integer_data = ("index",)
+        value_dimension = "length"
+
+    class Angles(Older):
+        value_dimension = "angle"
+
+    class Explicit(Older):
+        unit_data = ("x",)
+
+    assert Older().converted_data == ("x", "y", "z")
+    assert Angles().converted_data == () and Explicit().converted_data == ("x",)

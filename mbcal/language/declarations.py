@@ -15,7 +15,7 @@ from mbcal.errors import DimensionError, MdlError, UndefinedNameError, UnitError
 from mbcal.language import ast
 from mbcal.language.arguments import bind
 from mbcal.language.expressions import Compiler, literal_unit, shown_limits, written
-from mbcal.language.graph import VECTOR, Const
+from mbcal.language.graph import VECTOR, Const, recording_uses
 from mbcal.language.model import (
     CameraInfo,
     FrameInfo,
@@ -56,6 +56,20 @@ def build_model(c: Compiler) -> Model:
     MdlError
         The first error, with its location.
     """
+    with recording_uses() as uses:
+        model = _build_model(c)
+    if not uses:
+        return model
+    params = tuple(
+        dataclasses.replace(p, used_as=tuple(sorted(uses[p.index], key=repr)))
+        if p.dim is None and p.index in uses
+        else p
+        for p in model.params
+    )
+    return dataclasses.replace(model, params=params)
+
+
+def _build_model(c: Compiler) -> Model:
     names = c.names
     for decl in names.params.values():
         c.finish_param(decl)

@@ -28,6 +28,7 @@ from mbcal.language.graph import (
     ParamRef,
     depends_on,
     describe_kind,
+    note_use,
     product_dim,
     quotient_dim,
 )
@@ -418,6 +419,7 @@ class Compiler:
             raise MdlTypeError(f"{label} must be {want}, got {describe_kind(node)}", expr.span)
         if dim is not None and not fits(node.dim, dim):
             raise UnitError(f"{label} must be {describe(dim)}, got {describe(node.dim)}", expr.span)
+        note_use(node, dim)
         return node
 
     def axis(self, expr: ast.Expr, scope: Scope) -> Node:
@@ -445,6 +447,7 @@ class Compiler:
             raise MdlTypeError(f"{what} must be {want}, got {describe_kind(node)}", span)
         if dim is not None and not fits(node.dim, dim):
             raise UnitError(f"{what} must be {describe(dim)}, got {describe(node.dim)}", span)
+        note_use(node, dim)
 
     def pose(self, expr: ast.Expr, scope: Scope) -> Node:
         """The transform written after ``at``: a transform, or a position (x, y, z) in length units."""
@@ -452,6 +455,7 @@ class Compiler:
         if node.kind == VECTOR and node.size == 3:
             if not fits(node.dim, LENGTH):
                 raise UnitError(f"a position must be {describe(LENGTH)}, got {describe(node.dim)}", expr.span)
+            note_use(node, LENGTH)
             return make_op("translate", [node], TRANSFORM, None, 0, expr.span)
         if node.kind != TRANSFORM:
             raise MdlTypeError(

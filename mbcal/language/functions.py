@@ -44,7 +44,7 @@ from mbcal.geometry import transforms as geo
 from mbcal.language import ast
 from mbcal.language import soa_math as sm
 from mbcal.language.arguments import Parameter
-from mbcal.language.graph import SCALAR, TRANSFORM, VECTOR, Const, Node, describe_kind, product_dim
+from mbcal.language.graph import SCALAR, TRANSFORM, VECTOR, Const, Node, describe_kind, note_use, product_dim
 from mbcal.units import ANGLE, DIMENSIONLESS, LENGTH, Dim, describe, fits, unify
 
 __all__ = [
@@ -370,6 +370,7 @@ def _scalar_rule(arg_dim: Dim | None, result: Dim | None, *, accept: tuple[Dim, 
         a = call.arg("a", what=f"the argument of {call.name}()")
         if arg_dim is not None and not (fits(a.dim, arg_dim) or a.dim in accept):
             raise UnitError(f"{call.name}() takes {describe(arg_dim)}, got {describe(a.dim)}", call.bound["a"].span)
+        note_use(a, arg_dim)
         return call.op(call.name, [a], SCALAR, result)
 
     return rule

@@ -10,7 +10,9 @@ computes is in :mod:`mbcal.language.functions`, and the two evaluators are
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import contextlib
+import contextvars
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -186,3 +188,41 @@ def quotient_dim(a: Dim | None, b: Dim | None) -> Dim | None:
     if b is None:
         return a
     return (a if a is not None else DIMENSIONLESS) / b
+
+
+# ---- what a parameter declared without a unit is used as ------------------------------------------
+
+# A literal without a unit is free: it takes the dimension its place needs.  A parameter declared
+# so has no dimension of its own, but where it stands decides what a value given later (--set, a
+# measurement file's known value) may be written in: 30 cm for a box's size, never 600 mm for a
+# focal length in pixels.
+_USES: contextvars.ContextVar[dict[int, set[Dim]] | None] = contextvars.ContextVar("mbcal_param_uses", default=None)
+# Operations whose result has their arguments' dimension: a parameter inside stands where it does.
+_SAME_DIMENSION = frozenset({"vec", "add", "sub", "neg"})
+
+
+@contextlib.contextmanager
+def recording_uses() -> Iterator[dict[int, set[Dim]]]:
+    """Within the block, :func:`note_use` records, per parameter index, the dimensions the places of
+    the parameters declared without a unit require."""
+    uses: dict[int, set[Dim]] = {}
+    token = _USES.set(uses)
+    try:
+        yield uses
+    finally:
+        _USES.reset(token)
+
+
+def note_use(node: Node, dim: Dim | None) -> None:
+    """``node`` stands where ``dim`` is required (its check passed): a parameter without a unit found
+    there — itself, a component of a vector, a term of a sum, negated — is used as ``dim``."""
+    uses = _USES.get()
+    if uses is None or dim is None:
+        return
+    stack = [node]
+    while stack:
+        n = stack.pop()
+        if isinstance(n, ParamRef) and n.dim is None:
+            uses.setdefault(n.index, set()).add(dim)
+        elif isinstance(n, Op) and n.op in _SAME_DIMENSION:
+            stack.extend(n.args)

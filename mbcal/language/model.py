@@ -71,6 +71,9 @@ class ParamInfo:
     editable: bool = False  # one statement declares it alone (no template, no index range)
     limit_lower: float | None = None
     limit_upper: float | None = None
+    used_as: tuple[Dim, ...] = ()
+    """Declared without a unit (``dim`` None): the dimensions the places it stands in require (a box's
+    size: length; a camera's f: a plain number), which a value given with a unit must fit."""
 
     @property
     def limited(self) -> bool:
@@ -97,6 +100,15 @@ class ParamInfo:
     def describe(self) -> str:
         return describe(self.dim)
 
+    @property
+    def given_dim(self) -> Dim | None:
+        """The dimension a value given for it with a unit (``--set``, a file's known value) must have:
+        its own, else the one dimension its places require; None when that is not one (never used
+        where a dimension is required, or used as two): then a plain number only."""
+        if self.dim is not None:
+            return self.dim
+        return self.used_as[0] if len(self.used_as) == 1 else None
+
     def outside_limits(self, value: float) -> str | None:
         """None when ``value`` (SI) lies within the hard limits, else what is wrong, in the display
         unit: ``45 cm`` → "0.45 m is outside the hard limits of lever.length [0.1, 0.4] m".  Every
@@ -104,7 +116,9 @@ class ParamInfo:
         by this one rule."""
         low = -math.inf if self.limit_lower is None else self.limit_lower
         high = math.inf if self.limit_upper is None else self.limit_upper
-        if low <= value <= high:
+        # a few units in the last place of slack: '35 cm' is 0.35000000000000003 m, and a limit of
+        # 0.35 m refused it (with a message that showed both as 0.35)
+        if low - 4 * math.ulp(low) <= value <= high + 4 * math.ulp(high):
             return None
         suffix = f" {self.unit}" if self.unit else ""
         ends = ", ".join(f"{self.display(v):.12g}" for v in (low, high))

@@ -86,9 +86,11 @@ class MeasurementModel:
         Names of extra numeric inputs per measurement (``("ray",)``); not estimated.
     integer_data : tuple of str
         Those data that must be whole numbers (indices).
-    unit_data : tuple of str
+    unit_data : tuple of str or None
         Those data in the unit of the values (a measured point's coordinates): a file's ``unit``
-        converts them with the values.  The others (an index, a count) are never converted.
+        converts them with the values, the others (an index, a count) never.  None (the default):
+        for a kind whose values are lengths, every datum that is not in ``integer_data`` (the rule
+        before this attribute, less its converting of whole-number indices); none for other kinds.
     value_dimension : str
         ``pixel``, ``length``, ``angle`` or ``none``: the unit a file's ``unit`` column converts.
     implicit_value : float or None
@@ -105,7 +107,7 @@ class MeasurementModel:
     values: ClassVar[tuple[str, ...]] = ()
     data: ClassVar[tuple[str, ...]] = ()
     integer_data: ClassVar[tuple[str, ...]] = ()
-    unit_data: ClassVar[tuple[str, ...]] = ()
+    unit_data: ClassVar[tuple[str, ...] | None] = None
     value_dimension: ClassVar[str] = "none"
     implicit_value: ClassVar[float | None] = None
     default_sigma: ClassVar[float] = 1.0
@@ -115,6 +117,15 @@ class MeasurementModel:
     def size(self) -> int:
         """Number of values per measurement."""
         return len(self.values)
+
+    @property
+    def converted_data(self) -> tuple[str, ...]:
+        """The data a file's ``unit`` converts (see ``unit_data``)."""
+        if self.unit_data is not None:
+            return self.unit_data
+        if self.value_dimension != "length":
+            return ()
+        return tuple(k for k in self.data if k not in self.integer_data)
 
     def predict(self, scenes: Scene, batch: Batch) -> Array:
         """Predicted values (n, size) for a batch of measurements.

@@ -470,8 +470,8 @@ class SetBuilder:
             except MbcalError as err:
                 raise MeasurementFileError(err.message, where, hint=err.hint, field="param") from None
             full = info.name
-            # declared without a unit: a plain number (a unit would rescale it in silence)
-            dimension = info.dim or DIMENSIONLESS
+            # declared without a unit: what its places require (ParamInfo.given_dim), else a plain number
+            dimension = info.given_dim or DIMENSIONLESS
             if config and not info.per_configuration:
                 raise MeasurementFileError(
                     f"'{name}' is given for configuration '{config}' but is not declared 'per configuration' "
@@ -579,7 +579,8 @@ class SetBuilder:
         unit = str(record.get("unit") or "").strip() or None
         factor = _unit_factor(unit, mm, where)
         if unit:  # data in the values' unit (point_to_surface's measured point); never an index (a ray)
-            data = {k: v * factor if k in mm.unit_data else v for k, v in data.items()}
+            converted = mm.converted_data
+            data = {k: v * factor if k in converted else v for k, v in data.items()}
         value = self._values(record, mm, where, factor)
         cov = self._covariance(record, mm, where, factor)
         if self.model is not None:
