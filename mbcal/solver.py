@@ -878,12 +878,12 @@ def least_squares(
             forget(recipe_key)
         fun, args, local = given
         return least_squares(fun, x0, args=args, config=config, size=size, bounds=bounds, local=local)
-    except jax.errors.JaxRuntimeError as err:
+    except _RUNTIME_ERROR as err:
         raise _out_of_memory(err, x0, size) from None
     try:
         x, cost, status, it = (np.asarray(v) for v in out[:4])  # where XLA's run ends (dispatch is asynchronous)
         active = np.asarray(out[4]) if limits is not None else None
-    except jax.errors.JaxRuntimeError as err:
+    except _RUNTIME_ERROR as err:
         raise _out_of_memory(err, x0, size) from None
     if given[2] is not None and not in_program:  # each result in the coordinates nearest its start
         x = represented_after(given[2], x, x0)
@@ -892,6 +892,11 @@ def least_squares(
     return LeastSquaresResult(
         x=x, x0=x0, cost=cost, status=status, iterations=it, best=best, config=config, active=active
     )
+
+
+# XLA's failures at run time (JaxRuntimeError from JAX 0.4.34; before it, jaxlib's XlaRuntimeError, a
+# RuntimeError): looked up so that an older JAX, which pyproject.toml allows, does not fail on the name.
+_RUNTIME_ERROR: type[Exception] = getattr(jax.errors, "JaxRuntimeError", RuntimeError)
 
 
 def _out_of_memory(err: Exception, x0: np.ndarray, size: int | None) -> Exception:

@@ -137,6 +137,7 @@ def test_every_command_refuses_more_restarts_than_mbcal_runs_before_the_work(com
     monkeypatch.chdir(tmp_path)
     (tmp_path / "scans").mkdir()
     command = [str(ROOT / c) if c.startswith("models/") else c for c in command]
+    command[1] = "missing.mdl"  # checked before any file is read
     assert main([*command, "--restarts", "10000000"]) == 2
     assert "10000000 restarts is more than mbcal runs (10000)" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
