@@ -892,7 +892,7 @@ def cmd_kinematics(args: argparse.Namespace) -> int:
     kin = Kinematics(
         model, args.point, chain=args.chain, values=_check_values(model, parse_assignments(args.set or [], model))
     )
-    meant = [(name, model.param(name).dim) for name in kin.joints]
+    meant = [(name, model.param(name).given_dim) for name in kin.joints]  # as --set reads them
     theta = np.asarray(_quantities(args.joints, "--joints", meant)) if args.joints else kin.theta0
     if len(theta) != kin.n:
         raise MbcalError(

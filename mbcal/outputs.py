@@ -215,8 +215,9 @@ def make_output_folder(path: str | os.PathLike[str]) -> Path:
     """Make the folder ``path`` (and missing parents) for a command's outputs: within an
     :func:`all_or_nothing` block, the folders made are removed again, when empty, if it fails."""
     folder = Path(path)
-    missing = [p for p in (folder, *folder.parents) if not p.exists()]
-    folder.mkdir(parents=True, exist_ok=True)
+    resolved = folder.resolve()  # ('x/../kept/out': 'kept' exists, whatever 'x/..' says)
+    missing = [p for p in (resolved, *resolved.parents) if not p.exists()]
+    resolved.mkdir(parents=True, exist_ok=True)  # (not 'x' of 'x/..': made, it was never removed)
     made = _MADE.get()
     if made is not None:
         made.extend(missing)

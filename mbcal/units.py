@@ -30,6 +30,7 @@ __all__ = [
     "real",
     "at_least",
     "whole",
+    "within",
 ]
 
 
@@ -110,6 +111,13 @@ def unify(a: Dim | None, b: Dim | None) -> tuple[bool, Dim | None]:
 def to_display(unit: str, value: float) -> float:
     """A value in SI units in its display unit: degrees for angles (``unit == "deg"``)."""
     return float(math.degrees(value)) if unit == "deg" else float(value)
+
+
+def within(value: float, low: float, high: float) -> bool:
+    """``low ≤ value ≤ high`` with a few units in the last place of slack at each end: a value and a
+    limit written in different units differ by the rounding of their conversion (35 cm is
+    0.35000000000000003 m, and a limit of 0.35 m refused it, showing both as 0.35)."""
+    return low - 4 * math.ulp(low) <= value <= high + 4 * math.ulp(high)
 
 
 def fits(dim: Dim | None, expected: Dim) -> bool:

@@ -1070,3 +1070,34 @@ def test_a_plugins_length_data_are_converted_without_naming_them():
 
     assert Older().converted_data == ("x", "y", "z")
     assert Angles().converted_data == () and Explicit().converted_data == ("x",)
+
+
+@pytest.mark.parametrize(
+    ("uses", "given"),
+    [
+        ("frame f at translate(a, 0, 0)", "length"),
+        ("frame f at (a, 0, 0) * rot_z(30 deg)", "length"),  # a position in a product of transforms
+        ("frame f at rot_z(atan2(a, 1 m))", "length"),  # beside a length in atan2
+        ("point p = (hypot(a, 1 m), 0, 0)", "length"),
+        ("frame f at translate(a + 5 cm, 0, 0)", "length"),
+        ("frame f at rot_z(a)", "angle"),
+        # used as two dimensions (one of them missed before, so the other's unit was taken): none
+        ("frame f at (a, 0, 0) * rot_z(a)", None),
+        ("frame f at rot_z(atan2(a, 1 m)) * rot_z(a)", None),
+    ],
+)
+def test_where_a_parameter_without_a_unit_stands_decides_its_unit(uses, given):
+    from mbcal.language import load_model_text
+    from mbcal.units import ANGLE, LENGTH
+
+    model = load_model_text(f"param a = 0.2\n{uses}\n", "m.mdl")
+    assert model.param("a").given_dim == {"length": LENGTH, "angle": ANGLE, None: None}[given]
+
+
+def test_a_models_own_limits_take_a_value_at_the_limit_in_another_unit():
+    """'35 cm' against 'limits [0 m, 0.35 m]' was refused in the model too (as nominal and as override)."""
+    from mbcal.language import load_model_text
+
+    assert load_model_text("param a = 35 cm limits [0 m, 0.35 m]\n", "m.mdl").param("a").nominal > 0.35
+    text = "param a = 0.3 m limits [0 m, 0.35 m]\noverride a = 35 cm\n"
+    assert load_model_text(text, "m.mdl").param("a").nominal == pytest.approx(0.35)

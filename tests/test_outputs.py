@@ -163,3 +163,14 @@ def test_the_caches_files_are_not_held_back_with_a_commands_outputs(tmp_path):
     assert done.returncode == 0, done.stderr
     assert (tmp_path / "r.json").is_file()
     assert not [p for p in (tmp_path / "cache").rglob("*.part")]
+
+
+def test_a_failed_command_removes_only_the_folders_it_made(tmp_path, monkeypatch):
+    from mbcal.outputs import all_or_nothing, make_output_folder
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "kept").mkdir()  # the user's, empty
+    with pytest.raises(KeyboardInterrupt), all_or_nothing():
+        make_output_folder("x/../kept/overlays/deeper")  # 'x/..': 'kept' still exists
+        raise KeyboardInterrupt
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["kept"] and not list((tmp_path / "kept").iterdir())

@@ -30,7 +30,7 @@ from mbcal.language.scope import Deferred, Namespace
 from mbcal.language.sensors import camera, range_sensor
 from mbcal.language.shapes import ShapeChecker
 from mbcal.language.targets import target_points
-from mbcal.units import ANGLE, LENGTH, describe, fits
+from mbcal.units import ANGLE, LENGTH, describe, fits, within
 
 __all__ = ["build_model", "JOINT_KINDS"]
 
@@ -146,7 +146,7 @@ def _apply_overrides(c: Compiler, names: Namespace) -> None:
         if info.dim is not None and not fits(value.dim, info.dim):
             raise UnitError(f"'{name}' is {describe(info.dim)}, the override is {describe(value.dim)}", stmt.value.span)
         lo, hi = info.limit_lower, info.limit_upper
-        if (lo is not None and value.value < lo) or (hi is not None and value.value > hi):
+        if not within(float(value.value), -math.inf if lo is None else lo, math.inf if hi is None else hi):
             raise DimensionError(
                 f"the override {written(float(value.value), stmt.value, info.dim)} of '{name}' lies outside its "
                 f"limits {shown_limits(lo, hi, decl.stmt, info.dim)}",

@@ -35,7 +35,7 @@ from mbcal.language.graph import (
 from mbcal.language.ir import make_op
 from mbcal.language.model import ParamInfo
 from mbcal.language.scope import Lazy, Namespace, ParamDecl, Scope
-from mbcal.units import ANGLE, DIMENSIONLESS, LENGTH, UNITS, Dim, describe, fits, unify
+from mbcal.units import ANGLE, DIMENSIONLESS, LENGTH, UNITS, Dim, describe, fits, unify, within
 
 __all__ = ["Compiler", "AXES", "literal_unit"]
 
@@ -233,12 +233,12 @@ class Compiler:
         lo = -math.inf if limits[0] is None else limits[0]
         hi = math.inf if limits[1] is None else limits[1]
         shown = shown_limits(lo, hi, stmt, dim)
-        if not lo <= nominal <= hi:
+        if not within(nominal, lo, hi):
             raise DimensionError(
                 f"the value {written(nominal, stmt.value, dim)} of '{decl.name}' lies outside its limits {shown}",
                 stmt.value.span if stmt.value is not None else where,
             )
-        if lower is not None and upper is not None and not (lo <= lower and upper <= hi):
+        if lower is not None and upper is not None and not (within(lower, lo, hi) and within(upper, lo, hi)):
             raise DimensionError(
                 f"the search range {shown_range(lower, stmt.lower, upper, stmt.upper, dim)} of '{decl.name}' "
                 f"reaches outside its limits {shown}",
@@ -326,6 +326,8 @@ class Compiler:
             if not ok:
                 verb = "add" if op == "+" else "subtract"
                 raise UnitError(f"cannot {verb} {describe(a.dim)} and {describe(b.dim)}", span)
+            note_use(a, dim)  # a term beside 5 cm is a length
+            note_use(b, dim)
             return make_op("add" if op == "+" else "sub", [a, b], a.kind, dim, a.size, span)
         if op == "*":
             if a.kind == TRANSFORM and b.kind == TRANSFORM:
@@ -339,6 +341,7 @@ class Compiler:
                         f"{describe(v.dim)}",
                         v_expr.span,
                     )
+                note_use(v, LENGTH)
                 t = make_op("translate", [v], TRANSFORM, None, 0, v_expr.span)
                 a, b = (t, b) if a.kind == VECTOR else (a, t)
                 return make_op("compose", [a, b], TRANSFORM, None, 0, span)

@@ -386,6 +386,8 @@ def _same_unit_rule(result: str = "same") -> TypingRule:
             raise UnitError(
                 f"{op}() needs arguments of one unit, got {describe(a.dim)} and {describe(b.dim)}", call.span
             )
+        note_use(a, dim)  # atan2(a, 1 m): a is a length
+        note_use(b, dim)
         return call.op(op, [a, b], SCALAR, ANGLE if result == "angle" else dim)
 
     return rule
@@ -408,6 +410,8 @@ def _minmax(call: CallContext) -> Node:
     ok, dim = unify(a.dim, b.dim)
     if not ok:
         raise UnitError(f"{op}() needs arguments of one unit, got {describe(a.dim)} and {describe(b.dim)}", call.span)
+    note_use(a, dim)
+    note_use(b, dim)
     return call.op(op, [a, b], SCALAR, dim)
 
 

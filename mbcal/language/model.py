@@ -16,7 +16,7 @@ import numpy as np
 from mbcal.errors import ParameterError, SourceSpan, UnknownNameError, suggest
 from mbcal.language.graph import Node
 from mbcal.language.summary import model_summary
-from mbcal.units import ANGLE, LENGTH, Dim, describe, to_display
+from mbcal.units import ANGLE, LENGTH, Dim, describe, to_display, within
 
 __all__ = [
     "ParamInfo",
@@ -116,9 +116,7 @@ class ParamInfo:
         by this one rule."""
         low = -math.inf if self.limit_lower is None else self.limit_lower
         high = math.inf if self.limit_upper is None else self.limit_upper
-        # a few units in the last place of slack: '35 cm' is 0.35000000000000003 m, and a limit of
-        # 0.35 m refused it (with a message that showed both as 0.35)
-        if low - 4 * math.ulp(low) <= value <= high + 4 * math.ulp(high):
+        if within(value, low, high):  # (a few ulps of slack: 35 cm against a limit of 0.35 m)
             return None
         suffix = f" {self.unit}" if self.unit else ""
         ends = ", ".join(f"{self.display(v):.12g}" for v in (low, high))

@@ -17,7 +17,7 @@ from mbcal.geometry.shapes import get_shape, shape_kinds
 from mbcal.language import ast
 from mbcal.language.arguments import bind
 from mbcal.language.expressions import Compiler
-from mbcal.language.graph import SCALAR, VECTOR, Const, Node, describe_kind
+from mbcal.language.graph import SCALAR, VECTOR, Const, Node, describe_kind, note_use
 from mbcal.language.ir import make_op
 from mbcal.language.meshes import load_mesh
 from mbcal.language.model import MeshData, ShapeInfo
@@ -82,6 +82,7 @@ class ShapeChecker:
                     )
                 if not fits(scale.dim, DIMENSIONLESS):
                     raise UnitError(f"a mesh scale is a plain number, got {describe(scale.dim)}", scale_expr.span)
+                note_use(scale, DIMENSIONLESS)
             return ShapeInfo(name, frame, kind, dims, pose, mesh, stmt.span)
         if info.sized is not None and (stmt.args or stmt.kwargs):
             kind, info = info.sized, kinds[info.sized]  # plane(sx, sy) is a rectangle

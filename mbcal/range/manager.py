@@ -38,7 +38,7 @@ from mbcal.errors import MbcalError, OutputError
 from mbcal.export.mdl import write_calibrated_model
 from mbcal.language.load import load_model
 from mbcal.language.model import Model
-from mbcal.outputs import atomic_write, check_output_folder, finite_or_null
+from mbcal.outputs import atomic_write, check_output_folder, finite_or_null, make_output_folder
 from mbcal.range.fit import FitOptions, Prior, ScanFit, fit_scans
 from mbcal.range.readers import CLOUD_SUFFIXES, DEPTH_SUFFIXES, write_ply
 from mbcal.range.scans import Scan, load_scan
@@ -95,7 +95,7 @@ class Update:
 
 def _outputs(fit: ScanFit, model: Model, out: Path, stem: str, note: Sequence[str]) -> list[Path]:
     """The calibrated model, the outliers PLY and the report JSON, each written atomically."""
-    out.mkdir(parents=True, exist_ok=True)
+    make_output_folder(out)  # removed again, when empty, if the command fails (all_or_nothing)
     written = []
     mdl = out / f"{stem}.calibrated.mdl"
     write_calibrated_model(model, fit.values, mdl, std=fit.std, note=list(note))
