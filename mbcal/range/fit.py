@@ -284,25 +284,19 @@ class ScanFit:
     @property
     def ok(self) -> bool:
         """Converged, observable, inliers consistent with σ (reduced χ² < 2), no structural misfit,
-        and fewer than half the points outliers."""
-        return (
-            self.converged
-            and not self.unobservable
-            and self.reduced_chi2 < 2.0
-            and not self.structural
-            and self.near_outlier_fraction < 0.5
-            and not self.jumped
-        )
+        fewer than half the points outliers, and not a jump only the prior had held: no
+        :attr:`doubts`."""
+        return not self.doubts
 
     @property
     def doubts(self) -> list[str]:
         """Why the fit is not :attr:`ok`, one phrase per reason (empty when it is)."""
         out = [] if self.converged else ["the solver did not converge"]
         out += [f"unobservable: {u}" for u in self.unobservable]
-        if self.reduced_chi2 >= 2.0:
+        if not self.reduced_chi2 < 2.0:  # (NaN too)
             out.append(f"the inliers scatter more than σ (reduced χ² {self.reduced_chi2:.3g})")
         out += [f"structural misfit of {m.object}" for m in self.structural]
-        if self.near_outlier_fraction >= 0.5:
+        if not self.near_outlier_fraction < 0.5:
             out.append(f"{100 * self.near_outlier_fraction:.0f} % of the points are outliers")
         if self.jumped:
             out.append(
