@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -1101,3 +1102,31 @@ def test_a_models_own_limits_take_a_value_at_the_limit_in_another_unit():
     assert load_model_text("param a = 35 cm limits [0 m, 0.35 m]\n", "m.mdl").param("a").nominal > 0.35
     text = "param a = 0.3 m limits [0 m, 0.35 m]\noverride a = 35 cm\n"
     assert load_model_text(text, "m.mdl").param("a").nominal == pytest.approx(0.35)
+
+
+@pytest.mark.parametrize(
+    ("override", "error"),
+    [
+        ("override a = 30 cm", None),  # a is a point's coordinate: a length
+        ("override a = 0.3", None),
+        ("override a = 0.3 sigma 1 mm", None),
+        ("override a = 30 deg", "'a' is declared without a unit and used as a length (m); the override is an angle"),
+        ("override k = 600 mm", "'k' is declared without a unit and not used as one dimension"),  # k * 1 m
+        ("override k = 6 sigma 1 mm", "the override's sigma is a length"),
+    ],
+)
+def test_an_override_of_a_parameter_without_a_unit_reads_units_as_set_does(override, error):
+    """The language's own 'override' of 'param k = 3' took '600 mm' as 0.6 (what --set and a
+    measurement file's known values refuse): it is checked against the dimension the parameter's
+    places require, known once the model is compiled, and located at the value."""
+    from mbcal.errors import UnitError
+    from mbcal.language import load_model_text
+
+    points = "frame f {\n  point p = (a, 0, 0)\n  point q = (k * 1 m, 0, 0)\n}\n"
+    text = f"param a = 0.25\nparam k = 3\n{points}{override}\n"
+    if error is None:
+        assert load_model_text(text, "m.mdl").param("a").nominal == pytest.approx(0.3)
+        return
+    with pytest.raises(UnitError, match=re.escape(error)) as info:
+        load_model_text(text, "m.mdl")
+    assert info.value.span is not None and info.value.span.line == 7

@@ -30,7 +30,7 @@ from mbcal.language.scope import Deferred, Namespace
 from mbcal.language.sensors import camera, range_sensor
 from mbcal.language.shapes import ShapeChecker
 from mbcal.language.targets import target_points
-from mbcal.units import ANGLE, LENGTH, describe, fits, within
+from mbcal.units import ANGLE, DIMENSIONLESS, LENGTH, Dim, describe, fits, within
 
 __all__ = ["build_model", "JOINT_KINDS"]
 
@@ -56,24 +56,41 @@ def build_model(c: Compiler) -> Model:
     MdlError
         The first error, with its location.
     """
+    unit_overrides: list[tuple[str, Dim, ast.Expr, str]] = []
     with recording_uses() as uses:
-        model = _build_model(c)
-    if not uses:
-        return model
-    params = tuple(
-        dataclasses.replace(p, used_as=tuple(sorted(uses[p.index], key=repr)))
-        if p.dim is None and p.index in uses
-        else p
-        for p in model.params
-    )
-    return dataclasses.replace(model, params=params)
+        model = _build_model(c, unit_overrides)
+    if uses:
+        params = tuple(
+            dataclasses.replace(p, used_as=tuple(sorted(uses[p.index], key=repr)))
+            if p.dim is None and p.index in uses
+            else p
+            for p in model.params
+        )
+        model = dataclasses.replace(model, params=params)
+    _check_unit_overrides(model, unit_overrides)
+    return model
 
 
-def _build_model(c: Compiler) -> Model:
+def _check_unit_overrides(model: Model, unit_overrides: list[tuple[str, Dim, ast.Expr, str]]) -> None:
+    """An ``override`` with a unit of a parameter declared without one: the unit must be of the
+    dimension its places require, as ``--set`` and a file's known values are read
+    (``ParamInfo.given_dim``) — known only once the whole model is compiled."""
+    for name, dim, node, what in unit_overrides:
+        given = model.param(name).given_dim
+        if dim != (given or DIMENSIONLESS):
+            used = f"used as {describe(given)}" if given is not None else "not used as one dimension: a plain number"
+            raise UnitError(
+                f"'{name}' is declared without a unit and {used}; {what} is {describe(dim)}",
+                node.span,
+                hint="write the value in a unit of that dimension, or as a plain number in SI units",
+            )
+
+
+def _build_model(c: Compiler, unit_overrides: list[tuple[str, Dim, ast.Expr, str]]) -> Model:
     names = c.names
     for decl in names.params.values():
         c.finish_param(decl)
-    _apply_overrides(c, names)
+    _apply_overrides(c, names, unit_overrides)
     frames = []
     for i, f in enumerate(names.frames):
         pose = c.pose(f.pose, f.scope) if f.pose is not None else None
@@ -131,7 +148,7 @@ def _build_model(c: Compiler) -> Model:
     )
 
 
-def _apply_overrides(c: Compiler, names: Namespace) -> None:
+def _apply_overrides(c: Compiler, names: Namespace, unit_overrides: list[tuple[str, Dim, ast.Expr, str]]) -> None:
     for name, (stmt, scope) in names.overrides.items():
         decl = names.params.get(name)
         if decl is None:
@@ -145,6 +162,8 @@ def _apply_overrides(c: Compiler, names: Namespace) -> None:
         value = c.constant(stmt.value, scope, f"the override of '{name}'")
         if info.dim is not None and not fits(value.dim, info.dim):
             raise UnitError(f"'{name}' is {describe(info.dim)}, the override is {describe(value.dim)}", stmt.value.span)
+        if info.dim is None and value.dim is not None:
+            unit_overrides.append((name, value.dim, stmt.value, "the override"))
         lo, hi = info.limit_lower, info.limit_upper
         if not within(float(value.value), -math.inf if lo is None else lo, math.inf if hi is None else hi):
             raise DimensionError(
@@ -157,6 +176,8 @@ def _apply_overrides(c: Compiler, names: Namespace) -> None:
             s = c.constant(stmt.sigma, scope, f"the sigma of the override of '{name}'")
             if info.dim is not None and not fits(s.dim, info.dim):
                 raise UnitError(f"the sigma of '{name}' must be {describe(info.dim)}", stmt.sigma.span)
+            if info.dim is None and s.dim is not None:
+                unit_overrides.append((name, s.dim, stmt.sigma, "the override's sigma"))
             sigma = float(s.value)
             if not sigma > 0:
                 raise DimensionError(f"sigma must be positive, got {sigma:g}", stmt.sigma.span)
