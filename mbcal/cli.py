@@ -1341,8 +1341,9 @@ def _register_commands(sub) -> None:
         a line in OUT/history.jsonl (estimate, σ, χ², time), OUT/state.json and the calibrated
         model OUT/MODEL.calibrated.mdl (atomic; never the input).  Flags a drift (an unknown moved
         more than --drift-k σ) and names structural misfits.  Safe to kill at any moment; a
-        restart resumes from the history and skips the files already taken.  With --once the exit
-        status is 1 when an update of that run was rejected.
+        restart resumes from the history and skips the files already taken.  A file is taken once
+        it was last modified 0.5 s ago (a copy in progress is waited for, with --once too).  With
+        --once the exit status is 1 when an update of that run was rejected.
         """,
         """
         mbcal watch models/room_depth.mdl --scans incoming/ --out managed/ --estimate 'room.*' \\
@@ -1363,7 +1364,9 @@ def _register_commands(sub) -> None:
     )
     p.add_argument("--poll", type=_positive, default=1.0, metavar="S", help="seconds between looks (default 1)")
     p.add_argument(
-        "--once", action="store_true", help="process the files there now and exit (1 if an update was rejected)"
+        "--once",
+        action="store_true",
+        help="process the files there now (waiting for any still being written) and exit (1 if one was rejected)",
     )
     p.add_argument(
         "--json",

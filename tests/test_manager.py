@@ -290,6 +290,44 @@ def test_an_update_the_scan_fit_would_not_trust_is_rejected_and_changes_nothing(
     assert not fit_scans(model, [flat], ["room.*"]).ok
 
 
+def test_watch_once_waits_for_a_scan_still_being_copied(tmp_path, monkeypatch):
+    """'mbcal watch --once' took every file at first sight: a PNG still being copied was a rejected
+    update ("cannot read") in the journal and the exit status 1.  A file modified less than the
+    settle time ago is now waited for (until its size rests), with --once too."""
+    import threading
+
+    path = _model_file(tmp_path)
+    model = mbcal.load_model(path)
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    write_depth_png(tmp_path / "whole.png", add_depth_noise(render_depth(model, ROOM_TRUTH), 1.5e-3, 0.0, seed=1))
+    data = (tmp_path / "whole.png").read_bytes()
+    target = scans / "a.png"
+    target.write_bytes(data[: len(data) // 2])  # the copy has begun
+
+    def finish() -> None:
+        time.sleep(0.25)
+        with target.open("ab") as f:
+            f.write(data[len(data) // 2 :])
+
+    copier = threading.Thread(target=finish)
+    copier.start()
+    seen = []
+    try:
+        assert ModelManager(path, tmp_path / "out", ["room.*"]).watch(scans, once=True, report=seen.append) == 1
+    finally:
+        copier.join()
+    assert not seen[0].error and seen[0].accepted
+    # A file last modified long ago is taken at first sight: the watch does not wait at all.
+    os.utime(target, ns=(time.time_ns() - 10**10,) * 2)
+
+    def no_wait(seconds: float) -> None:
+        raise AssertionError(f"waited {seconds} s for a file modified 10 s ago")
+
+    monkeypatch.setattr("mbcal.range.manager.time.sleep", no_wait)
+    assert ModelManager(path, tmp_path / "out2", ["room.*"]).watch(scans, once=True) == 1
+
+
 def test_a_scan_file_that_changes_after_it_was_taken_is_taken_again(tmp_path):
     """A copy that paused half-way was taken (the size had settled) and never read again: the rest
     of the scan was lost without a word.  A taken file is now read again when its size or time

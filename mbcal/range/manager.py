@@ -397,9 +397,10 @@ class ModelManager:
     ) -> int:
         """Process scan files appearing in ``folder`` (oldest name first), one update per file.
 
-        ``once``: process what is there and return; otherwise poll every ``poll`` s until
-        interrupted.  A file is taken when its size has not changed for ``settle`` s.  Returns
-        the number of updates made.
+        ``once``: process what is there and return (after waiting for the files still being
+        written); otherwise poll every ``poll`` s until interrupted.  A file is taken when it was
+        last modified ``settle`` s ago or more, or once its size has not changed for ``settle`` s
+        (a clock that disagrees with the file system's).  Returns the number of updates made.
         """
         src = Path(folder)
         if not src.is_dir():
@@ -408,6 +409,7 @@ class ModelManager:
         count = 0
         sizes: dict[Path, tuple[int, float]] = {}
         while True:
+            writing = False  # a file seen still being written: --once waits for it
             for p in sorted(src.iterdir()):
                 taken = done.get(str(p.resolve()))
                 if p.suffix.lower() not in SCAN_SUFFIXES or p.name.startswith(".") or taken == []:
@@ -431,9 +433,11 @@ class ModelManager:
                     size = info.st_size
                     seen = sizes.get(p)
                     now = time.monotonic()
-                    if not once and (seen is None or seen[0] != size or now - seen[1] < settle):
+                    rested = seen is not None and seen[0] == size and now - seen[1] >= settle
+                    if not rested and time.time() - info.st_mtime_ns / 1e9 < settle:
                         if seen is None or seen[0] != size:
                             sizes[p] = (size, now)
+                        writing = True
                         continue
                     try:
                         u = self.update_files([p], stamp)
@@ -446,6 +450,6 @@ class ModelManager:
                     report(u)
                 if max_updates is not None and count >= max_updates:
                     return count
-            if once:
+            if once and not writing:
                 return count
-            time.sleep(poll)
+            time.sleep(min(poll, settle) if once else poll)
