@@ -10,6 +10,7 @@ import pytest
 
 import mbcal
 from mbcal.errors import SolverError
+from mbcal.export.mdl import write_calibrated_model
 from mbcal.modeling import modeler
 from mbcal.problem import Problem
 
@@ -226,6 +227,30 @@ def test_values_declared_by_an_index_range_are_written_as_overrides(arm, tmp_pat
     assert "override arm.offset3 =" in text
     again = mbcal.load_model(out)
     assert again.param("arm.offset3").nominal == pytest.approx(result.values["arm.offset3"], rel=1e-9)
+
+
+@pytest.mark.parametrize("where", ["included", "main"])
+def test_a_parameter_overridden_in_an_included_file_or_the_main_one_is_written_so_the_model_loads(where, tmp_path):
+    """--write-model appended 'override lever.angle = ...' to a model whose included calibration
+    file already overrode it: the written model did not load ('already overridden')."""
+    (tmp_path / "robot_cal.mdl").write_text(
+        "param lever.angle = 20 deg in [-90 deg, 90 deg] sigma 5 deg\n"
+        "param lever.length = 25 cm\n" + ("override lever.angle = 22 deg sigma 2 deg\n" if where == "included" else "")
+    )
+    site = tmp_path / "site.mdl"
+    site.write_text(
+        'include "robot_cal.mdl"\n'
+        + ("override lever.angle = 22 deg sigma 2 deg\n" if where == "main" else "")
+        + "object lever at (0, 0.8 m, 1.1 m) {\n  joint revolute(-y, lever.angle)\n"
+        "  point tip = (0, 0, lever.length)\n}\n"
+    )
+    model = mbcal.load_model(site)
+    out = tmp_path / "site_cal.mdl"
+    write_calibrated_model(model, {"lever.angle": math.radians(29.5)}, out)
+    again = mbcal.load_model(out)
+    assert again.param("lever.angle").nominal == pytest.approx(math.radians(29.5), rel=1e-12)
+    assert again.param("lever.angle").sigma == pytest.approx(math.radians(2), rel=1e-12)  # the model's prior kept
+    assert out.read_text().count("override lever.angle") == 1  # in place when the main file has it
 
 
 def test_nothing_to_estimate_is_a_clear_error(room, room_data):

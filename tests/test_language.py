@@ -176,6 +176,18 @@ def test_include_brings_templates_and_parameters(write_model):
     assert len(model.files) == 2
 
 
+def test_an_override_in_a_file_replaces_one_in_a_file_it_includes_wherever_it_stands(write_model):
+    """A site's model re-sets what an included calibration file set (its own override wins,
+    value and prior σ, before or after the include and through several levels)."""
+    write_model("param a = 1 m sigma 1 cm\noverride a = 2 m sigma 2 cm\n", "lib/robot_cal.mdl")
+    write_model('include "robot_cal.mdl"\noverride a = 3 m\n', "lib/robot.mdl")
+    assert load_model(write_model('include "lib/robot_cal.mdl"\n')).param("a").sigma == pytest.approx(0.02)
+    for text in ('override a = 4 m\ninclude "lib/robot.mdl"\n', 'include "lib/robot.mdl"\noverride a = 4 m\n'):
+        info = load_model(write_model(text)).param("a")
+        assert (info.nominal, info.sigma, info.value_span.path) == (4.0, pytest.approx(0.01), "model.mdl")
+    assert load_model(write_model('include "lib/robot.mdl"\n')).param("a").nominal == 3.0
+
+
 def test_include_inside_a_frame_mounts_the_file_under_it(write_model):
     write_model("param q = 0 deg\nobject stick at rot_x(q) { point tip = (0, 0, 1 m) }\n", "stick.mdl")
     path = write_model('frame base at (1 m, 0, 0) { include "stick.mdl" }\n')

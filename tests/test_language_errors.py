@@ -145,6 +145,12 @@ GOLDEN = {
         errors.UnitError,
         "model.mdl:1:21: the sigma of 'a' is an angle (rad) but its value is a length (m)",
     ),
+    "override_twice_in_one_file": (
+        "param a = 1 m\noverride a = 2 m\noverride a = 3 m\n",
+        errors.DuplicateNameError,
+        "model.mdl:3:10: 'a' is already overridden at model.mdl:2:1 "
+        "(an override replaces only one in a file it includes)",
+    ),
     "pose_that_is_not_a_transform": (
         "param a = 1 m\nframe f at a\n",
         errors.MdlTypeError,
@@ -188,6 +194,26 @@ def test_error_inside_included_file_names_that_file(write_model):
     with pytest.raises(errors.UnitError) as info:
         load_model(path)
     assert str(info.value) == "parts/bad.mdl:1:11: cannot add a length (m) and an angle (rad)"
+
+
+def test_overrides_in_two_files_neither_of_which_includes_the_other_are_an_error(write_model):
+    write_model("param a = 1 m\noverride a = 2 m\n", "left.mdl")
+    write_model("override a = 3 m\n", "right.mdl")
+    path = write_model('include "left.mdl"\ninclude "right.mdl"\n')
+    with pytest.raises(errors.DuplicateNameError) as info:
+        load_model(path)
+    assert str(info.value) == (
+        "right.mdl:1:10: 'a' is already overridden at left.mdl:2:1 "
+        "(an override replaces only one in a file it includes)"
+    )
+
+
+def test_an_override_an_including_file_replaces_is_still_checked(write_model):
+    write_model("param a = 1 m limits [0 m, 5 m]\noverride a = 7 m\n", "part.mdl")
+    path = write_model('include "part.mdl"\noverride a = 2 m\n')
+    with pytest.raises(errors.DimensionError) as info:
+        load_model(path)
+    assert str(info.value) == "part.mdl:2:14: the override 7 m of 'a' lies outside its limits [0 m, 5 m]"
 
 
 def test_include_cycle_is_reported_with_the_chain(write_model):

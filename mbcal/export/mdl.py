@@ -1,10 +1,12 @@
 """Write a calibrated model: the seed's environment model manager.
 
 The output is the input model's text with the estimated values as nominal values.  A parameter
-declared once in the main file gets its value edited in place (its unit kept); one declared in
-an included file, in a template (one statement, several instances) or in an index range is
-set by an ``override`` statement appended at the end.  The input file is never modified; the
-output is written atomically.
+declared once in the main file, or overridden there, gets its value edited in place (its unit
+kept); one declared in an included file, in a template (one statement, several instances) or in
+an index range, or overridden in an included file, is set by an ``override`` statement appended
+at the end (an override in the including file replaces one in a file it includes; the appended
+one restates the prior σ the model had, which it replaces too).  The input file is never
+modified; the output is written atomically.
 """
 
 from __future__ import annotations
@@ -151,6 +153,9 @@ def write_calibrated_model(
             start = _offset(lines, span.line, span.column)
             end = _offset(lines, span.end_line, span.end_column)
             edits.append((start, end, new))
+        elif info.overridden and info.sigma is not None:
+            # It replaces an override in an included file, and with it that one's prior σ.
+            overrides.append(f"override {name} = {new} sigma {format_value(info.sigma, unit)}")
         else:
             overrides.append(f"override {name} = {new}")
     edits.extend(_relocate(text, source, out))
@@ -176,7 +181,10 @@ def write_calibrated_model(
     if overrides:
         if not body.endswith("\n"):
             body += "\n"
-        body += "\n# Calibrated values of parameters declared elsewhere (includes, templates, index ranges):\n"
+        body += (
+            "\n# Calibrated values of parameters declared elsewhere (includes, templates, index ranges)"
+            " or overridden in an included file:\n"
+        )
         body += "\n".join(overrides) + "\n"
     atomic_write(out, body)
 

@@ -26,7 +26,7 @@ from mbcal.language.model import (
     ShapeInfo,
     TargetInfo,
 )
-from mbcal.language.scope import Deferred, Namespace
+from mbcal.language.scope import Deferred, Namespace, ParamDecl, Scope
 from mbcal.language.sensors import camera, range_sensor
 from mbcal.language.shapes import ShapeChecker
 from mbcal.language.targets import target_points
@@ -149,46 +149,65 @@ def _build_model(c: Compiler, unit_overrides: list[tuple[str, Dim, ast.Expr, str
 
 
 def _apply_overrides(c: Compiler, names: Namespace, unit_overrides: list[tuple[str, Dim, ast.Expr, str]]) -> None:
-    for name, (stmt, scope) in names.overrides.items():
-        decl = names.params.get(name)
-        if decl is None:
-            raise UndefinedNameError(
-                f"'override' of an undeclared parameter '{name}'",
-                stmt.name_span or stmt.span,
-                hint=suggest(name, names.params),
-            )
-        info = decl.info
-        assert info is not None and stmt.value is not None
-        value = c.constant(stmt.value, scope, f"the override of '{name}'")
-        if info.dim is not None and not fits(value.dim, info.dim):
-            raise UnitError(f"'{name}' is {describe(info.dim)}, the override is {describe(value.dim)}", stmt.value.span)
-        if info.dim is None and value.dim is not None:
-            unit_overrides.append((name, value.dim, stmt.value, "the override"))
-        lo, hi = info.limit_lower, info.limit_upper
-        if not within(float(value.value), -math.inf if lo is None else lo, math.inf if hi is None else hi):
-            raise DimensionError(
-                f"the override {written(float(value.value), stmt.value, info.dim)} of '{name}' lies outside its "
-                f"limits {shown_limits(lo, hi, decl.stmt, info.dim)}",
-                stmt.value.span,
-            )
-        sigma = info.sigma
-        if stmt.sigma is not None:
-            s = c.constant(stmt.sigma, scope, f"the sigma of the override of '{name}'")
-            if info.dim is not None and not fits(s.dim, info.dim):
-                raise UnitError(f"the sigma of '{name}' must be {describe(info.dim)}", stmt.sigma.span)
-            if info.dim is None and s.dim is not None:
-                unit_overrides.append((name, s.dim, stmt.sigma, "the override's sigma"))
-            sigma = float(s.value)
-            if not sigma > 0:
-                raise DimensionError(f"sigma must be positive, got {sigma:g}", stmt.sigma.span)
+    # An override that one in an including file replaces is checked as if it applied.
+    for stmt, scope in names.shadowed:
+        _override(c, names, stmt, scope, unit_overrides)
+    for stmt, scope in names.overrides.values():
+        decl, nominal, sigma = _override(c, names, stmt, scope, unit_overrides)
+        assert decl.info is not None and stmt.value is not None
         decl.info = dataclasses.replace(
-            info,
-            nominal=float(value.value),
+            decl.info,
+            nominal=nominal,
             sigma=sigma,
             value_span=stmt.value.span,
             value_unit=literal_unit(stmt.value),
             editable=True,
+            overridden=True,
         )
+
+
+def _override(
+    c: Compiler,
+    names: Namespace,
+    stmt: ast.Override,
+    scope: Scope,
+    unit_overrides: list[tuple[str, Dim, ast.Expr, str]],
+) -> tuple[ParamDecl, float, float | None]:
+    """An ``override`` statement checked: the parameter's declaration, its new nominal value and
+    its prior σ (the statement's, else the declaration's)."""
+    name = stmt.name
+    decl = names.params.get(name)
+    if decl is None:
+        raise UndefinedNameError(
+            f"'override' of an undeclared parameter '{name}'",
+            stmt.name_span or stmt.span,
+            hint=suggest(name, names.params),
+        )
+    info = decl.info
+    assert info is not None and stmt.value is not None
+    value = c.constant(stmt.value, scope, f"the override of '{name}'")
+    if info.dim is not None and not fits(value.dim, info.dim):
+        raise UnitError(f"'{name}' is {describe(info.dim)}, the override is {describe(value.dim)}", stmt.value.span)
+    if info.dim is None and value.dim is not None:
+        unit_overrides.append((name, value.dim, stmt.value, "the override"))
+    lo, hi = info.limit_lower, info.limit_upper
+    if not within(float(value.value), -math.inf if lo is None else lo, math.inf if hi is None else hi):
+        raise DimensionError(
+            f"the override {written(float(value.value), stmt.value, info.dim)} of '{name}' lies outside its "
+            f"limits {shown_limits(lo, hi, decl.stmt, info.dim)}",
+            stmt.value.span,
+        )
+    sigma = info.sigma
+    if stmt.sigma is not None:
+        s = c.constant(stmt.sigma, scope, f"the sigma of the override of '{name}'")
+        if info.dim is not None and not fits(s.dim, info.dim):
+            raise UnitError(f"the sigma of '{name}' must be {describe(info.dim)}", stmt.sigma.span)
+        if info.dim is None and s.dim is not None:
+            unit_overrides.append((name, s.dim, stmt.sigma, "the override's sigma"))
+        sigma = float(s.value)
+        if not sigma > 0:
+            raise DimensionError(f"sigma must be positive, got {sigma:g}", stmt.sigma.span)
+    return decl, float(value.value), sigma
 
 
 def _joint(c: Compiler, d: Deferred) -> JointInfo:

@@ -46,6 +46,7 @@ def expand(statements: Sequence[ast.Statement], path: str) -> Namespace:
     expander = _Expander(Namespace(path, files=[path]))
     expander.collect_templates(statements, True)
     expander.walk(statements, expander.names.global_scope)
+    expander.settle_overrides()
     return expander.names
 
 
@@ -53,6 +54,10 @@ class _Expander:
     def __init__(self, names: Namespace):
         self.names = names
         self.instantiating: list[str] = []
+        self.includes = 0  # include statements walked so far: each one's number names it
+        self.chain: list[int] = []  # the includes that lead to the statements being walked
+        # Parameter name → its overrides in walk order, each with the includes that lead to it.
+        self.overrides: dict[str, list[tuple[ast.Override, Scope, tuple[int, ...]]]] = {}
 
     def collect_templates(self, statements: Sequence[ast.Statement], top: bool) -> None:
         names = self.names
@@ -82,7 +87,12 @@ class _Expander:
         names = self.names
         for stmt in statements:
             if isinstance(stmt, ast.Include):
-                self.walk(stmt.statements, scope)
+                self.includes += 1
+                self.chain.append(self.includes)
+                try:
+                    self.walk(stmt.statements, scope)
+                finally:
+                    self.chain.pop()
             elif isinstance(stmt, ast.Template):
                 continue  # collected before
             elif isinstance(stmt, ast.Param):
@@ -127,16 +137,39 @@ class _Expander:
                     raise MdlError(
                         "'override' is written at the top level of a file, with the full parameter name", stmt.span
                     )
-                if stmt.name in names.overrides:
-                    first = names.overrides[stmt.name][0].span
-                    raise DuplicateNameError(
-                        f"'{stmt.name}' is already overridden at {first}", stmt.name_span or stmt.span
-                    )
-                names.overrides[stmt.name] = (stmt, scope)
+                self.overrides.setdefault(stmt.name, []).append((stmt, scope, tuple(self.chain)))
             elif isinstance(stmt, ast.Measure):
                 names.measures.extend(k for k in stmt.kinds if k not in names.measures)
             else:  # pragma: no cover - every statement type is handled above
                 raise MdlError(f"unsupported statement {type(stmt).__name__}", stmt.span)
+
+    def settle_overrides(self) -> None:
+        """Decide which ``override`` of each parameter takes effect: the one in a file that
+        includes (directly or through other files) the files of all the others.  The others
+        are kept in ``names.shadowed``, to be checked but not applied.
+
+        Raises
+        ------
+        DuplicateNameError
+            Two overrides of a parameter neither of which replaces the other: in one file, or in
+            files neither of which includes the other.
+        """
+        names = self.names
+        for name, found in self.overrides.items():
+            best = min(range(len(found)), key=lambda k: len(found[k][2]))  # the first of the fewest includes
+            chain = found[best][2]
+            for k, (stmt, scope, under) in enumerate(found):
+                if k == best:
+                    continue
+                if len(under) == len(chain) or under[: len(chain)] != chain:
+                    first, second = found[min(k, best)][0], found[max(k, best)][0]
+                    raise DuplicateNameError(
+                        f"'{name}' is already overridden at {first.span}",
+                        second.name_span or second.span,
+                        hint="an override replaces only one in a file it includes",
+                    )
+                names.shadowed.append((stmt, scope))
+            names.overrides[name] = found[best][:2]
 
     def _new_frame(
         self,

@@ -69,6 +69,7 @@ class ParamInfo:
     value_span: SourceSpan | None = field(default=None, repr=False)
     value_unit: str | None = None  # the unit the value was written in ("cm"), None for SI
     editable: bool = False  # one statement declares it alone (no template, no index range)
+    overridden: bool = False  # an ``override`` gave its value (value_span is that statement's)
     limit_lower: float | None = None
     limit_upper: float | None = None
     used_as: tuple[Dim, ...] = ()

@@ -138,7 +138,10 @@ class Namespace:
     warnings : list of str
         Warnings for the model's summary.
     overrides : dict
-        Parameter name → its ``override`` statement and scope.
+        Parameter name → the ``override`` statement that takes effect, and its scope.
+    shadowed : list
+        The ``override`` statements (with their scopes) that one in an including file replaces:
+        checked, not applied.
     global_scope : Scope
         The top level.
     """
@@ -156,6 +159,7 @@ class Namespace:
     data_files: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
     overrides: dict[str, tuple[ast.Override, Scope]] = field(default_factory=dict)
+    shadowed: list[tuple[ast.Override, Scope]] = field(default_factory=list)
     global_scope: Scope = field(default_factory=lambda: Scope("", None, -1))
 
     def lookup(self, name: str, scope: Scope, span: SourceSpan) -> Lazy | ParamDecl | float:
