@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 import mbcal
-from mbcal.errors import SolverError
+from mbcal.errors import OutputError, SolverError
 from mbcal.export.mdl import write_calibrated_model
 from mbcal.modeling import modeler
 from mbcal.problem import Problem
@@ -251,6 +252,41 @@ def test_a_parameter_overridden_in_an_included_file_or_the_main_one_is_written_s
     assert again.param("lever.angle").nominal == pytest.approx(math.radians(29.5), rel=1e-12)
     assert again.param("lever.angle").sigma == pytest.approx(math.radians(2), rel=1e-12)  # the model's prior kept
     assert out.read_text().count("override lever.angle") == 1  # in place when the main file has it
+
+
+def test_every_relative_file_name_is_rewritten_when_the_model_is_written_to_another_folder(tmp_path):
+    """A points("pts.txt") target kept its path in a model written elsewhere: the written model
+    did not load ('point file not found: .../out/pts.txt')."""
+    import trimesh
+
+    for folder in ("parts", "meshes", "data", "models", "out/deeper"):
+        (tmp_path / folder).mkdir(parents=True)
+    (tmp_path / "parts" / "peg.mdl").write_text("template peg() { shape cylinder(5 mm, 3 cm) }\n")
+    trimesh.creation.box(extents=(0.1, 0.1, 0.1)).export(tmp_path / "meshes" / "block.stl")
+    (tmp_path / "data" / "pts.txt").write_text("0 0\n0.1 0\n0 0.1\n")
+    source = tmp_path / "models" / "cell.mdl"
+    source.write_text(
+        'include "../parts/peg.mdl"\n'
+        "param b.x = 0 m\n"
+        'template block() { shape mesh(file = "../meshes/block.stl", scale = 0.5) }\n'
+        'object a = block() at (1 m, 0, 0) { shape mesh("../meshes/block.stl") }\n'
+        "object p = peg()\n"
+        'frame holder { target board = points("../data/pts.txt", scale = 1 m) at (b.x, 0, 1 m) }\n'
+    )
+    model = mbcal.load_model(source)
+    out = tmp_path / "out" / "deeper" / "cell_cal.mdl"
+    write_calibrated_model(model, {"b.x": 0.01}, out)
+    again = mbcal.load_model(out)
+    assert again.param("b.x").nominal == pytest.approx(0.01)
+    assert [Path(f).resolve() for f in again.files[1:]] == [Path(f).resolve() for f in model.files[1:]]
+    assert [Path(f).resolve() for f in again.data_files] == [Path(f).resolve() for f in model.data_files]
+    assert again.names("point") == model.names("point") and [s.kind for s in again.shapes] == [
+        "mesh",
+        "mesh",
+        "cylinder",
+    ]
+    with pytest.raises(OutputError, match="refusing to overwrite the input file"):
+        write_calibrated_model(model, {"b.x": 0.01}, tmp_path / "data" / "pts.txt")  # a file the model reads
 
 
 def test_nothing_to_estimate_is_a_clear_error(room, room_data):

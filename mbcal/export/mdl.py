@@ -5,12 +5,14 @@ declared once in the main file, or overridden there, gets its value edited in pl
 kept); one declared in an included file, in a template (one statement, several instances) or in
 an index range, or overridden in an included file, is set by an ``override`` statement appended
 at the end (an override in the including file replaces one in a file it includes; the appended
-one restates the prior σ the model had, which it replaces too).  The input file is never
-modified; the output is written atomically.
+one restates the prior σ the model had, which it replaces too).  Every relative file name in
+the text (includes, meshes, ``points(...)`` targets) is rewritten to name the same file from
+the output's folder.  The input file is never modified; the output is written atomically.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import json
 import os
@@ -19,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mbcal.errors import MbcalError
+from mbcal.errors import MbcalError, SourceSpan
 from mbcal.export.urdf import write_urdf
 from mbcal.language import ast
 from mbcal.language.model import Model
@@ -45,27 +47,39 @@ def _offset(lines: list[str], line: int, column: int) -> int:
     return sum(len(lines[i]) for i in range(line - 1)) + column - 1
 
 
-def _file_references(statements) -> list:
-    """Every string literal naming a file (includes, meshes) in a syntax tree, with its span."""
-    found = []
-    for stmt in statements:
-        if isinstance(stmt, ast.Include):
-            found.append((stmt.path, stmt.span, "include"))
-        elif isinstance(stmt, ast.Shape) and stmt.kind == "mesh":
-            for arg in [*stmt.args[:1], *(k.value for k in stmt.kwargs if k.name == "file")]:
-                if isinstance(arg, ast.String):
-                    found.append((arg.value, arg.span, "mesh"))
-        if isinstance(stmt, (ast.Frame, ast.Instance, ast.Template)):
-            found.extend(_file_references(stmt.body))
+def _file_references(statements: Sequence[ast.Statement]) -> list[tuple[str, SourceSpan, str]]:
+    """Every file name in a syntax tree, with its span and what names it (``include`` or
+    ``string``).
+
+    The language's strings are file names only (an include's, a mesh's, a ``points(...)``
+    target's; a string anywhere else is an error), each relative to the file it is written in,
+    so every string literal of the tree is one, wherever it stands.
+    """
+    found: list[tuple[str, SourceSpan, str]] = []
+
+    def visit(node: object) -> None:
+        if isinstance(node, ast.String):
+            found.append((node.value, node.span, "string"))
+        elif isinstance(node, ast.Include):
+            found.append((node.path, node.span, "include"))  # the statements of the file are its own
+        elif isinstance(node, tuple):
+            for item in node:
+                visit(item)
+        elif isinstance(node, (ast.Expr, ast.Statement, ast.Keyword, ast.TemplateParam)):
+            for f in dataclasses.fields(node):
+                visit(getattr(node, f.name))
+
+    with ast.deep_recursion():
+        visit(tuple(statements))
     return found
 
 
 def _relocate(text: str, source: Path, out: Path) -> list[tuple[int, int, str]]:
-    """Edits that keep relative include and mesh paths valid from the output's folder."""
+    """Edits that keep relative file names (includes, meshes, point files) valid from the output's folder."""
     if source.resolve().parent == out.resolve().parent:
         return []
     lines = text.splitlines(keepends=True)
-    edits = []
+    edits: list[tuple[int, int, str]] = []
     for value, span, what in _file_references(parse_text_cached(text, display_path(source))):
         if Path(value).is_absolute():
             continue
@@ -74,21 +88,15 @@ def _relocate(text: str, source: Path, out: Path) -> list[tuple[int, int, str]]:
             new = os.path.relpath(target, out.resolve().parent)
         except ValueError:  # another drive
             new = str(target)
+        # The parser sets end_line and end_column on every span it makes.
+        assert span.end_line is not None and span.end_column is not None
+        start = _offset(lines, span.line, span.column)
+        end = _offset(lines, span.end_line, span.end_column)
         if what == "include":
             # The span is the whole statement: replace the string literal inside it.
-            start = _offset(lines, span.line, span.column)
-            end = _offset(lines, span.end_line, span.end_column)
             stmt = text[start:end]
-            q = stmt.index('"')
-            edits.append((start + q, start + len(stmt.rstrip()), json.dumps(new, ensure_ascii=False)))
-        else:
-            edits.append(
-                (
-                    _offset(lines, span.line, span.column),
-                    _offset(lines, span.end_line, span.end_column),
-                    json.dumps(new, ensure_ascii=False),
-                )
-            )
+            start, end = start + stmt.index('"'), start + len(stmt.rstrip())
+        edits.append((start, end, json.dumps(new, ensure_ascii=False)))
     return edits
 
 
@@ -129,7 +137,7 @@ def write_calibrated_model(
         return
     if not source.is_file():
         raise MbcalError(f"cannot write a calibrated model: the model was not read from a file ({model.path})")
-    out = check_output(path, [model.path, *model.files], overwrite=overwrite)
+    out = check_output(path, [model.path, *model.files, *model.data_files], overwrite=overwrite)
     text = source.read_text(encoding="utf-8")
     lines = text.splitlines(keepends=True)
     edits: list[tuple[int, int, str]] = []
