@@ -396,6 +396,30 @@ def test_range_sensor_directions_are_normalised():
     np.testing.assert_allclose(np.linalg.norm(model.ranges[2].directions, axis=1), 1.0)
 
 
+def test_a_single_row_or_column_of_rays_may_span_up_to_a_full_turn():
+    def angles(text):  # each ray's angle from +z, in degrees
+        d = load_model_text(text).ranges[0].directions
+        return np.degrees(np.arctan2(d[:, 0] + d[:, 1], d[:, 2]))
+
+    # a 2-D lidar of 270 deg: rays by angle, not by tan (which folded them back past 90 deg)
+    np.testing.assert_allclose(angles("range l(fov = (270 deg, 0 deg), rays = (7, 1))"), np.arange(-135, 136, 45))
+    d = load_model_text("range l(fov = (0 deg, 120 deg), rays = (1, 3))").ranges[0].directions
+    np.testing.assert_allclose(d, [[0, -np.sqrt(3) / 2, 0.5], [0, 0, 1], [0, np.sqrt(3) / 2, 0.5]], atol=1e-15)
+    # a full turn: n rays 360/n deg apart, the first (straight back) not repeated
+    np.testing.assert_allclose(angles("range l(fov = (360 deg, 0 deg), rays = (4, 1))"), [-180, -90, 0, 90])
+    # below 180 deg a single row gets the rays of the grid rule (tan a, 0, 1)
+    a = np.radians(np.linspace(-80, 80, 5))
+    d = np.stack([np.tan(a), np.zeros(5), np.ones(5)], axis=1)
+    np.testing.assert_allclose(
+        load_model_text("range l(fov = (160 deg, 0 deg), rays = (5, 1))").ranges[0].directions,
+        d / np.linalg.norm(d, axis=1, keepdims=True),
+        rtol=0,
+        atol=1e-15,
+    )
+    with pytest.raises(errors.DimensionError, match=r"^<string>:1:15: a single row of rays spans at most 360 deg"):
+        load_model_text("range l(fov = (400 deg, 0 deg), rays = (8, 1))")
+
+
 def test_camera_intrinsics_and_distortion_may_be_parameters():
     text = """
     param cam.f = 800 in [600, 1000]

@@ -130,6 +130,12 @@ GOLDEN = {
         errors.ArgumentError,
         "model.mdl:1:1: camera 'c' needs 'width' (image size in pixels)",
     ),
+    "grid_of_rays_of_180_deg": (
+        "range lidar(fov = (180 deg, 30 deg), rays = (16, 4))\n",
+        errors.DimensionError,
+        "model.mdl:1:19: a grid of rays needs a horizontal field of view below 180 deg, got 180 deg "
+        "(only a single row or column of rays (rays = (n, 1) or (1, n)) may span up to 360 deg)",
+    ),
     "empty_search_range": (
         "param a = 0 m in [1 m, -1 m]\n",
         errors.DimensionError,

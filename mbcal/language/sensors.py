@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from mbcal.errors import ArgumentError, DimensionError, MdlError, MdlTypeError
+from mbcal.errors import ArgumentError, DimensionError, MdlError, MdlTypeError, SourceSpan
 from mbcal.language import ast
 from mbcal.language.arguments import bind
 from mbcal.language.expressions import Compiler
@@ -135,11 +135,7 @@ def range_sensor(c: Compiler, stmt: ast.RangeSensor, scope: Scope, frame: int, n
         cols, rows = (int(round(float(v))) for v in rays.value)
         if cols < 1 or rows < 1 or cols * rows > 1_000_000:
             raise DimensionError("rays must be between 1 and 10^6 in all", bound["rays"].span)
-        h = np.tan(np.linspace(-fov.value[0] / 2, fov.value[0] / 2, cols)) if cols > 1 else np.zeros(1)
-        v = np.tan(np.linspace(-fov.value[1] / 2, fov.value[1] / 2, rows)) if rows > 1 else np.zeros(1)
-        hh, vv = np.meshgrid(h, v)
-        d = np.stack([hh.ravel(), vv.ravel(), np.ones(hh.size)], axis=1)
-        dirs = d / np.linalg.norm(d, axis=1, keepdims=True)
+        dirs = _fan(float(fov.value[0]), float(fov.value[1]), cols, rows, bound["fov"].span)
     max_range = 1e3
     if "max" in bound:
         node = c.arg(bound, "max", scope, dim=LENGTH, what="the maximum range")
@@ -147,6 +143,41 @@ def range_sensor(c: Compiler, stmt: ast.RangeSensor, scope: Scope, frame: int, n
             raise DimensionError("the maximum range must be a positive constant", bound["max"].span)
         max_range = float(node.value)
     return RangeInfo(name, frame, dirs, max_range, stmt.span)
+
+
+def _fan(h: float, v: float, cols: int, rows: int, span: SourceSpan | None) -> np.ndarray:
+    """The unit rays of ``fov = (h, v), rays = (cols, rows)`` (angles in radians), row by row.
+
+    A single row sweeps its rays by angle about the frame's y axis, (sin a, 0, cos a), a single
+    column about its x axis, (0, sin a, cos a): either may span up to a full turn, and a full
+    turn spaces its rays 360°/n apart from straight back (−180°), without repeating the first.
+    A grid (more than one column and row) places its rays like a camera's pixels, at
+    (tan a, tan b, 1): each field of view must be below 180°.  Below 180° a single row or column
+    gets the same rays either way.
+    """
+    turn = 2 * math.pi
+    if cols > 1 and rows > 1:
+        for angle, which in ((h, "horizontal"), (v, "vertical")):
+            if not abs(angle) < math.pi:
+                raise DimensionError(
+                    f"a grid of rays needs a {which} field of view below 180 deg, got {math.degrees(angle):g} deg",
+                    span,
+                    hint="only a single row or column of rays (rays = (n, 1) or (1, n)) may span up to 360 deg",
+                )
+        hh, vv = np.meshgrid(np.tan(np.linspace(-h / 2, h / 2, cols)), np.tan(np.linspace(-v / 2, v / 2, rows)))
+        d = np.stack([hh.ravel(), vv.ravel(), np.ones(hh.size)], axis=1)
+        return d / np.linalg.norm(d, axis=1, keepdims=True)
+    n, angle = (cols, h) if cols > 1 else (rows, v)
+    if n == 1:
+        return np.array([[0.0, 0.0, 1.0]])
+    full = math.isclose(abs(angle), turn, rel_tol=1e-12)
+    if abs(angle) > turn and not full:
+        which = "row" if cols > 1 else "column"
+        raise DimensionError(f"a single {which} of rays spans at most 360 deg, got {math.degrees(angle):g} deg", span)
+    a = np.linspace(-angle / 2, angle / 2, n, endpoint=not full)
+    s, c = np.sin(a), np.cos(a)
+    zero = np.zeros(n)
+    return np.stack([s, zero, c] if cols > 1 else [zero, s, c], axis=1)
 
 
 DEPTH_SETTINGS = ("width", "height", "f", "fx", "fy", "cx", "cy", "scale", "min")
