@@ -136,6 +136,56 @@ GOLDEN = {
         "model.mdl:1:19: a grid of rays needs a horizontal field of view below 180 deg, got 180 deg "
         "(only a single row or column of rays (rays = (n, 1) or (1, n)) may span up to 360 deg)",
     ),
+    "override_that_overflows": (
+        "param lever.angle = 0 rad\noverride lever.angle = 1e308 rad * 10\n",
+        errors.DimensionError,
+        "model.mdl:2:24: the override of 'lever.angle' is not a finite number",
+    ),
+    "override_that_is_nan": (
+        "param a = 1 m\noverride a = 0 m / 0\n",
+        errors.DimensionError,
+        "model.mdl:2:14: the override of 'a' is not a finite number",
+    ),
+    "override_sigma_that_overflows": (
+        "param a = 1 m\noverride a = 2 m sigma 1e308 m * 10\n",
+        errors.DimensionError,
+        "model.mdl:2:24: the sigma of the override of 'a' is not a finite number",
+    ),
+    "search_range_that_overflows": (
+        "param a = 1 m in [0 m, 1e308 m * 10]\n",
+        errors.DimensionError,
+        "model.mdl:1:24: the upper end of the search range of 'a' is not a finite number",
+    ),
+    "sigma_that_overflows": (
+        "param a = 1 m sigma 1e308 m * 10\n",
+        errors.DimensionError,
+        "model.mdl:1:21: the sigma of 'a' is not a finite number",
+    ),
+    "camera_centre_that_is_infinite": (
+        "camera c(width = 640, height = 480, f = 500, cx = 1 / 0, k1 = 0 / 0)\n",
+        errors.DimensionError,
+        "model.mdl:1:51: camera 'c': cx is not a finite number at the nominal values",
+    ),
+    "camera_distortion_that_is_nan": (
+        "param k = 0\ncamera c(width = 640, height = 480, f = 500, k1 = k / 0)\n",
+        errors.DimensionError,
+        "model.mdl:2:51: camera 'c': k1 is not a finite number at the nominal values",
+    ),
+    "joint_offset_that_is_infinite": (
+        "param q = 0 deg\nframe l {\n  joint revolute(z, q, offset = 1 rad / 0)\n}\n",
+        errors.DimensionError,
+        "model.mdl:3:33: the offset of the joint of 'l' is not finite at the nominal values",
+    ),
+    "joint_limit_that_overflows": (
+        "param q = 0 deg\nframe l {\n  joint revolute(z, q, upper = 1e308 rad * 10)\n}\n",
+        errors.DimensionError,
+        "model.mdl:3:32: the joint's upper limit is not a finite number",
+    ),
+    "range_that_overflows": (
+        "range r(direction = (0, 0, 1), max = 1e308 m * 10)\n",
+        errors.DimensionError,
+        "model.mdl:1:38: the maximum range must be a positive finite constant",
+    ),
     "empty_search_range": (
         "param a = 0 m in [1 m, -1 m]\n",
         errors.DimensionError,

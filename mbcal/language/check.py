@@ -58,13 +58,14 @@ def check(statements: Sequence[ast.Statement], path: str) -> Model:
 
 
 def check_at_nominal(model: Model, X: np.ndarray | None = None, where: str = "at the nominal values") -> None:
-    """Dimensions must be positive and poses finite at the nominal parameter values (or at ``X``,
-    all parameter values; ``where`` says which in the messages).
+    """Dimensions and focal lengths must be positive, and camera settings, joints, poses and
+    points finite, at the nominal parameter values (or at ``X``, all parameter values; ``where``
+    says which in the messages).
 
     Raises
     ------
     DimensionError
-        At the first shape size, focal length, pose or point that is not.
+        At the first shape size, camera setting, joint, pose or point that is not.
     """
     X = model.nominal if X is None else np.asarray(X, dtype=float)
     memo: dict[int, object] = {}
@@ -79,7 +80,22 @@ def check_at_nominal(model: Model, X: np.ndarray | None = None, where: str = "at
             v = float(value(node))
             if not (math.isfinite(v) and v > 0):
                 raise DimensionError(f"camera '{cam.name}': {key} must be positive, got {v:g}", node.span or cam.span)
+        keys = ("cx", "cy", "skew", "k1", "k2", "p1", "p2", "k3")
+        for key, node in zip(keys, (*cam.intrinsics[2:], *cam.distortion)):
+            if not math.isfinite(float(value(node))):
+                raise DimensionError(
+                    f"camera '{cam.name}': {key} is not a finite number {where}", node.span or cam.span
+                )
     for frame in model.frames:
+        joint = frame.joint
+        if joint is not None:
+            for what, part in (("axis", joint.axis), ("variable", joint.q), ("offset", joint.offset)):
+                if part is not None and not np.all(np.isfinite(value(part))):
+                    why = " (a zero axis?)" if what == "axis" else ""
+                    raise DimensionError(
+                        f"the {what} of the joint of '{frame.name}' is not finite {where}{why}",
+                        part.span or joint.span,
+                    )
         if frame.pose is not None and not np.all(np.isfinite(value(frame.pose))):
             raise DimensionError(
                 f"the pose of '{frame.name}' is not finite {where} (a zero axis or quaternion?)",

@@ -190,6 +190,8 @@ def _override(
         raise UnitError(f"'{name}' is {describe(info.dim)}, the override is {describe(value.dim)}", stmt.value.span)
     if info.dim is None and value.dim is not None:
         unit_overrides.append((name, value.dim, stmt.value, "the override"))
+    if not math.isfinite(float(value.value)):
+        raise DimensionError(f"the override of '{name}' is not a finite number", stmt.value.span)
     lo, hi = info.limit_lower, info.limit_upper
     if not within(float(value.value), -math.inf if lo is None else lo, math.inf if hi is None else hi):
         raise DimensionError(
@@ -205,6 +207,8 @@ def _override(
         if info.dim is None and s.dim is not None:
             unit_overrides.append((name, s.dim, stmt.sigma, "the override's sigma"))
         sigma = float(s.value)
+        if not math.isfinite(sigma):
+            raise DimensionError(f"the sigma of the override of '{name}' is not a finite number", stmt.sigma.span)
         if not sigma > 0:
             raise DimensionError(f"sigma must be positive, got {sigma:g}", stmt.sigma.span)
     return decl, float(value.value), sigma
@@ -230,6 +234,8 @@ def _joint(c: Compiler, d: Deferred) -> JointInfo:
         node = c.arg(bound, key, d.scope, dim=dim, what=f"the joint's {key} limit")
         if node is not None and not isinstance(node, Const):
             raise MdlError(f"the joint's {key} limit must be a constant", bound[key].span)
+        if isinstance(node, Const) and not math.isfinite(float(node.value)):
+            raise DimensionError(f"the joint's {key} limit is not a finite number", bound[key].span)
         limits.append(float(node.value) if isinstance(node, Const) else None)
     lo, hi = limits
     if lo is not None and hi is not None and not lo <= hi:

@@ -118,7 +118,7 @@ class Compiler:
             value = self.constant(stmt.value, decl.scope, f"the nominal value of parameter '{decl.name}'")
             dim = value.dim
             bounds: list[float | None] = []
-            for bound in (stmt.lower, stmt.upper):
+            for side, bound in (("lower", stmt.lower), ("upper", stmt.upper)):
                 if bound is None:
                     bounds.append(None)
                     continue
@@ -130,6 +130,10 @@ class Compiler:
                         bound.span,
                     )
                 dim = dim2
+                if not math.isfinite(float(b.value)):
+                    raise DimensionError(
+                        f"the {side} end of the search range of '{decl.name}' is not a finite number", bound.span
+                    )
                 bounds.append(float(b.value))
             sigma = None
             if stmt.sigma is not None:
@@ -142,6 +146,8 @@ class Compiler:
                     )
                 dim = dim2
                 sigma = float(s.value)
+                if not math.isfinite(sigma):
+                    raise DimensionError(f"the sigma of '{decl.name}' is not a finite number", stmt.sigma.span)
                 if not sigma > 0:
                     raise DimensionError(f"sigma must be positive, got {sigma:g}", stmt.sigma.span)
             lower, upper = bounds

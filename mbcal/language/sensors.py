@@ -139,8 +139,8 @@ def range_sensor(c: Compiler, stmt: ast.RangeSensor, scope: Scope, frame: int, n
     max_range = 1e3
     if "max" in bound:
         node = c.arg(bound, "max", scope, dim=LENGTH, what="the maximum range")
-        if not isinstance(node, Const) or not float(node.value) > 0:
-            raise DimensionError("the maximum range must be a positive constant", bound["max"].span)
+        if not isinstance(node, Const) or not 0 < float(node.value) < math.inf:
+            raise DimensionError("the maximum range must be a positive finite constant", bound["max"].span)
         max_range = float(node.value)
     return RangeInfo(name, frame, dirs, max_range, stmt.span)
 
