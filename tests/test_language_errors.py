@@ -186,6 +186,17 @@ GOLDEN = {
         errors.DimensionError,
         "model.mdl:1:38: the maximum range must be a positive finite constant",
     ),
+    "camera_with_f_and_fx": (
+        "camera c(width = 640, height = 480, f = 500, fx = 400)\n",
+        errors.ArgumentError,
+        "model.mdl:1:51: camera 'c' takes f = ... or fx = ..., fy = ..., not both "
+        "(f is the focal length of both axes: drop it, or drop fx and fy)",
+    ),
+    "camera_with_fx_alone": (
+        "camera c(width = 640, height = 480, fx = 500)\n",
+        errors.ArgumentError,
+        "model.mdl:1:42: camera 'c' has fx but no fy: give both (or f = ... for both)",
+    ),
     "empty_search_range": (
         "param a = 0 m in [1 m, -1 m]\n",
         errors.DimensionError,

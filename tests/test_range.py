@@ -200,6 +200,9 @@ def test_depth_camera_statement():
     [
         ("width = 8, f = 5", "needs 'height'"),
         ("width = 8, height = 6", "needs a focal length"),
+        ("width = 8, height = 6, f = 5, fx = 0", "takes f = ... or fx = ..., fy = ..., not both"),
+        ("width = 8, height = 6, fx = 0, fy = 5", "the focal length fx must be positive, got 0"),
+        ("width = 8, height = 6, fy = 5", "has fy but no fx"),
         ("width = 8.5, height = 6, f = 5", "whole number"),
         ("width = 8, height = 6, f = 5, fov = (1 deg, 1 deg)", "drop 'fov'"),
         ("width = 8, height = 6, f = 5, scale = 0 mm", "depth scale must be positive"),

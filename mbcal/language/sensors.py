@@ -61,11 +61,13 @@ def camera(c: Compiler, stmt: ast.Camera, scope: Scope, frame: int, name: str) -
         if not isinstance(node, Const) or float(node.value) != round(float(node.value)) or node.value <= 0:
             raise DimensionError(f"the camera's {key} must be a positive whole number of pixels", bound[key].span)
         size.append(int(node.value))
-    f = c.arg(bound, "f", scope, dim=DIMENSIONLESS, what="the focal length f (pixels)")
-    fx = c.arg(bound, "fx", scope, dim=DIMENSIONLESS, what="fx (pixels)") or f
-    fy = c.arg(bound, "fy", scope, dim=DIMENSIONLESS, what="fy (pixels)") or f
-    if fx is None or fy is None:
-        raise ArgumentError(f"camera '{stmt.name}' needs a focal length: f = ... or fx = ..., fy = ...", stmt.span)
+    _check_focal_lengths(f"camera '{stmt.name}'", bound, stmt.span)
+    if "f" in bound:
+        fx = fy = c.arg(bound, "f", scope, dim=DIMENSIONLESS, what="the focal length f (pixels)")
+    else:
+        fx = c.arg(bound, "fx", scope, dim=DIMENSIONLESS, what="fx (pixels)")
+        fy = c.arg(bound, "fy", scope, dim=DIMENSIONLESS, what="fy (pixels)")
+    assert fx is not None and fy is not None
 
     def pixel(key: str, default: float) -> Node:
         node = c.arg(bound, key, scope, dim=DIMENSIONLESS, what=f"'{key}'")
@@ -76,6 +78,25 @@ def camera(c: Compiler, stmt: ast.Camera, scope: Scope, frame: int, name: str) -
     skew = pixel("skew", 0.0)
     k1, k2, p1, p2, k3 = (pixel(k, 0.0) for k in ("k1", "k2", "p1", "p2", "k3"))
     return CameraInfo(name, frame, size[0], size[1], (fx, fy, cx, cy, skew), (k1, k2, p1, p2, k3), stmt.span)
+
+
+def _check_focal_lengths(what: str, bound: dict[str, ast.Expr], span: SourceSpan | None) -> None:
+    """``f = F`` or ``fx = FX, fy = FY``: one focal length for both axes or one for each, never
+    both forms and never one of fx, fy alone (``what`` names the camera in messages)."""
+    given = [k for k in ("fx", "fy") if k in bound]
+    if "f" in bound and given:
+        raise ArgumentError(
+            f"{what} takes f = ... or fx = ..., fy = ..., not both",
+            bound[given[0]].span,
+            hint="f is the focal length of both axes: drop it, or drop fx and fy",
+        )
+    if "f" not in bound and not given:
+        raise ArgumentError(f"{what} needs a focal length: f = ... or fx = ..., fy = ...", span)
+    if len(given) == 1:
+        missing = "fy" if given[0] == "fx" else "fx"
+        raise ArgumentError(
+            f"{what} has {given[0]} but no {missing}: give both (or f = ... for both)", bound[given[0]].span
+        )
 
 
 def _const_vectors(c: Compiler, expr: ast.Expr, scope: Scope, what: str) -> np.ndarray:
@@ -214,15 +235,17 @@ def _depth_camera(c: Compiler, stmt: ast.RangeSensor, bound: dict, scope: Scope,
         size.append(int(v))
     if size[0] * size[1] > 4_000_000:
         raise DimensionError("a depth camera may have at most 4 million pixels", bound["width"].span)
-    f = _constant(c, bound, "f", scope, DIMENSIONLESS, "the focal length f (pixels)")
-    fx = _constant(c, bound, "fx", scope, DIMENSIONLESS, "fx (pixels)") or f
-    fy = _constant(c, bound, "fy", scope, DIMENSIONLESS, "fy (pixels)") or f
-    if fx is None or fy is None:
-        raise ArgumentError(
-            f"depth camera '{stmt.name}' needs a focal length: f = ... or fx = ..., fy = ...", stmt.span
+    _check_focal_lengths(f"depth camera '{stmt.name}'", bound, stmt.span)
+    focal = {}
+    for key in ("f",) if "f" in bound else ("fx", "fy"):
+        v = _constant(
+            c, bound, key, scope, DIMENSIONLESS, "the focal length f (pixels)" if key == "f" else f"{key} (pixels)"
         )
-    if not (fx > 0 and fy > 0):
-        raise DimensionError("the focal length must be positive", (bound.get("f") or bound.get("fx") or stmt).span)
+        assert v is not None
+        if not v > 0:
+            raise DimensionError(f"the focal length {key} must be positive, got {v:g}", bound[key].span)
+        focal[key] = v
+    fx, fy = (focal["f"], focal["f"]) if "f" in focal else (focal["fx"], focal["fy"])
     cx = _constant(c, bound, "cx", scope, DIMENSIONLESS, "cx (pixels)")
     cy = _constant(c, bound, "cy", scope, DIMENSIONLESS, "cy (pixels)")
     cx = (size[0] - 1) / 2.0 if cx is None else cx
