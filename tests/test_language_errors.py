@@ -197,6 +197,25 @@ GOLDEN = {
         errors.ArgumentError,
         "model.mdl:1:42: camera 'c' has fx but no fy: give both (or f = ... for both)",
     ),
+    "look_at_straight_down_along_up": (
+        "camera top(width = 640, height = 480, f = 500) at look_at(eye = (0, 0, 2 m), target = (0, 0, 0))\n",
+        errors.DimensionError,
+        "model.mdl:1:51: look_at()'s view from eye to target is parallel to its up = z, so the camera's x axis "
+        "(perpendicular to both) is undefined (give look_at another up = ... (up = y, say, for a view straight "
+        "down or up))",
+    ),
+    "look_at_along_up_at_the_nominal_values": (
+        "param h = 2 m\nframe top at rot_z(0 deg) * look_at(eye = (0, 0, h), target = (0, 0, 0), up = -z)\n",
+        errors.DimensionError,
+        "model.mdl:2:29: the pose of 'top' is not finite at the nominal values: look_at()'s view from eye to target "
+        "is parallel to its up = -z, so the camera's x axis (perpendicular to both) is undefined (give look_at "
+        "another up = ... (up = y, say, for a view straight down or up))",
+    ),
+    "look_at_its_own_eye": (
+        "frame top at look_at(eye = (0, 0, 2 m), target = (0, 0, 2 m))\n",
+        errors.DimensionError,
+        "model.mdl:1:14: look_at()'s eye and target are the same point: there is no direction to look in",
+    ),
     "empty_search_range": (
         "param a = 0 m in [1 m, -1 m]\n",
         errors.DimensionError,

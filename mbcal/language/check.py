@@ -20,12 +20,13 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from mbcal.errors import DimensionError
+from mbcal.errors import DimensionError, SourceSpan
 from mbcal.language import ast, ir
 from mbcal.language.declarations import build_model
 from mbcal.language.expand import expand
 from mbcal.language.expressions import Compiler
-from mbcal.language.graph import Node
+from mbcal.language.functions import look_at_problem
+from mbcal.language.graph import Node, Op
 from mbcal.language.model import Model
 from mbcal.language.shapes import check_shapes_at_nominal
 
@@ -86,6 +87,20 @@ def check_at_nominal(model: Model, X: np.ndarray | None = None, where: str = "at
                 raise DimensionError(
                     f"camera '{cam.name}': {key} is not a finite number {where}", node.span or cam.span
                 )
+
+    def pose_error(what: str, pose: Node, span: SourceSpan | None) -> DimensionError:
+        """The error of a pose that is not finite: a look_at in it that looks along its up, or
+        from its target, names the cause."""
+        for node in _nodes(pose):
+            if isinstance(node, Op) and node.op == "look_at":
+                problem = look_at_problem(*(value(a) for a in node.args))
+                if problem is not None:
+                    message, hint = problem
+                    return DimensionError(
+                        f"the pose of {what} is not finite {where}: {message}", node.span or span, hint
+                    )
+        return DimensionError(f"the pose of {what} is not finite {where} (a zero axis or quaternion?)", span)
+
     for frame in model.frames:
         joint = frame.joint
         if joint is not None:
@@ -97,16 +112,23 @@ def check_at_nominal(model: Model, X: np.ndarray | None = None, where: str = "at
                         part.span or joint.span,
                     )
         if frame.pose is not None and not np.all(np.isfinite(value(frame.pose))):
-            raise DimensionError(
-                f"the pose of '{frame.name}' is not finite {where} (a zero axis or quaternion?)",
-                frame.pose.span or frame.span,
-            )
+            raise pose_error(f"'{frame.name}'", frame.pose, frame.pose.span or frame.span)
     for shape in model.shapes:
         if shape.pose is not None and not np.all(np.isfinite(value(shape.pose))):
-            raise DimensionError(
-                f"the pose of shape '{shape.name}' is not finite {where} (a zero axis or quaternion?)",
-                shape.pose.span or shape.span,
-            )
+            raise pose_error(f"shape '{shape.name}'", shape.pose, shape.pose.span or shape.span)
     for point in model.points:
         if not np.all(np.isfinite(value(point.position))):
             raise DimensionError(f"point '{point.name}' is not finite {where}", point.span)
+
+
+def _nodes(root: Node) -> list[Node]:
+    """Every node of a graph, each once (without recursion: a graph may be deep)."""
+    seen: dict[int, Node] = {}
+    stack = [root]
+    while stack:
+        node = stack.pop()
+        if id(node) not in seen:
+            seen[id(node)] = node
+            if isinstance(node, Op):
+                stack.extend(node.args)
+    return list(seen.values())

@@ -39,7 +39,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from mbcal.errors import ArgumentError, MdlTypeError, SourceSpan, UnitError
+from mbcal.errors import ArgumentError, DimensionError, MdlTypeError, SourceSpan, UnitError
 from mbcal.geometry import transforms as geo
 from mbcal.language import ast
 from mbcal.language import soa_math as sm
@@ -66,6 +66,7 @@ __all__ = [
     "register_function",
     "unregister_function",
     "registered_function",
+    "look_at_problem",
 ]
 
 ArrayImplementation = Callable[..., Any]
@@ -478,7 +479,46 @@ def _look_at(call: CallContext) -> Node:
     eye = call.arg("eye", kind=VECTOR, size=3, dim=LENGTH, what="look_at() eye")
     target = call.arg("target", kind=VECTOR, size=3, dim=LENGTH, what="look_at() target")
     up = call.axis("up") if "up" in call.bound else Const(kind=VECTOR, dim=None, size=3, value=np.array([0, 0, 1.0]))
+    if isinstance(eye, Const) and isinstance(target, Const) and isinstance(up, Const):
+        problem = look_at_problem(eye.value, target.value, up.value)
+        if problem is not None:
+            message, hint = problem
+            raise DimensionError(message, call.span, hint=hint)
     return call.op("look_at", [eye, target, up], TRANSFORM, None)
+
+
+_AXIS_NAMES: dict[tuple[float, ...], str] = {
+    (1.0, 0.0, 0.0): "x",
+    (0.0, 1.0, 0.0): "y",
+    (0.0, 0.0, 1.0): "z",
+    (-1.0, 0.0, 0.0): "-x",
+    (0.0, -1.0, 0.0): "-y",
+    (0.0, 0.0, -1.0): "-z",
+}
+
+
+def look_at_problem(eye: Any, target: Any, up: Any) -> tuple[str, str | None] | None:
+    """Why ``look_at(eye, target, up)`` has no pose, as a message and a hint: ``eye`` and
+    ``target`` the same point, or the view from one to the other parallel to ``up`` (the
+    camera's x axis, across both, is then undefined); None when neither.  The checker calls it for constant arguments
+    and, for arguments that depend on parameters, at the nominal values
+    (:func:`mbcal.language.check.check_at_nominal`)."""
+    eye, target, up = (np.asarray(v, dtype=float) for v in (eye, target, up))
+    view = target - eye
+    n, m = float(np.linalg.norm(view)), float(np.linalg.norm(up))
+    if not (np.isfinite(n) and np.isfinite(m) and m > 0):
+        return None
+    if n == 0:
+        return "look_at()'s eye and target are the same point: there is no direction to look in", None
+    if float(np.linalg.norm(np.cross(view / n, up / m))) > 1e-12:
+        return None
+    unit = tuple(float(v) for v in np.round(up / m, 12))
+    shown = _AXIS_NAMES.get(unit) or "(" + ", ".join(f"{v:g}" for v in unit) + ")"
+    return (
+        f"look_at()'s view from eye to target is parallel to its up = {shown}, so the camera's x axis "
+        "(perpendicular to both) is undefined",
+        "give look_at another up = ... (up = y, say, for a view straight down or up)",
+    )
 
 
 # ---- numeric implementations that are more than one line ------------------------------------------
