@@ -44,6 +44,12 @@ GOLDEN = {
         errors.DuplicateNameError,
         "model.mdl:3:9: 'f.p' is already declared at model.mdl:2:9",
     ),
+    "let_with_the_name_of_a_parameter": (
+        "param x = 1 m in [0 m, 2 m]\nlet x = 5 cm\npoint p = (x, 0, 0)\n",
+        errors.DuplicateNameError,
+        "model.mdl:2:5: let 'x' has the name of parameter 'x' declared at model.mdl:1:1 "
+        "(a name means one thing in a scope: rename one of them)",
+    ),
     "unit_mismatch_in_sum": (
         "param a = 1 m + 30 deg\n",
         errors.UnitError,
@@ -371,3 +377,49 @@ def test_a_byte_order_mark_is_skipped_and_bytes_that_are_not_utf8_are_located(tm
     with pytest.raises(errors.IncludeError) as info:
         load_model(latin)
     assert ":2:6: not UTF-8 text (byte 20)" in str(info.value)
+
+
+@pytest.mark.parametrize(
+    "text, where, message",
+    [
+        # the let first: still located at the let
+        ("let x = 5 cm\nparam x = 1 m\n", "1:5", "let 'x' has the name of parameter 'x' declared at model.mdl:2:1"),
+        ("frame f {\n  param x = 1 m\n  let x = 5 cm\n}\n", "3:7", "parameter 'f.x' declared at model.mdl:2:3"),
+        ("param f.x = 1 m\nframe f { let x = 5 cm }\n", "2:15", "parameter 'f.x' declared at model.mdl:1:1"),
+        ("param q[1..3] = 0 deg\nlet q2 = 1 deg\n", "2:5", "parameter 'q2' declared at model.mdl:1:1"),
+        (
+            "template t() {\n  param x = 1 m\n  let x = 5 cm\n}\nobject o = t()\n",
+            "3:7",
+            "let 'x' has the name of parameter 'o.x' declared at model.mdl:2:3",
+        ),
+        (
+            "template t(x) {\n  param x = 1 m\n  point p = (x, 0, 0)\n}\nobject o = t(5 cm)\n",
+            "1:12",
+            "argument 'x' of template 't' has the name of parameter 'o.x' declared at model.mdl:2:3",
+        ),
+    ],
+)
+def test_a_let_or_template_argument_never_hides_a_parameter_of_its_scope(text, where, message, write_model):
+    """'param x' and 'let x' in one scope: 'x' silently was the let (the parameter, in whatever order
+    they were written, was used nowhere)."""
+    with pytest.raises(errors.DuplicateNameError) as info:
+        load_model(write_model(text))
+    assert str(info.value).startswith(f"model.mdl:{where}: ")
+    assert message in str(info.value)
+
+
+def test_an_inner_parameter_is_found_before_an_outer_let(write_model):
+    """Names are looked up scope by scope, innermost first: a frame's own parameter was hidden by a
+    let of the same name at the top level; a let inside a frame still hides an outer parameter."""
+    model = load_model(
+        write_model(
+            "let x = 5 cm\nframe f {\n  param x = 1 m\n  point p = (x, 0, 0)\n}\n"
+            "param y = 1 m\nframe g {\n  let y = 2 cm\n  point p = (y, 0, 0)\n}\n"
+        )
+    )
+    from mbcal.modeling import modeler
+
+    scene = modeler(model, model.nominal)
+    assert scene.point("f.p")[0] == pytest.approx(1.0)
+    assert scene.point("g.p")[0] == pytest.approx(0.02)
+    assert model.param("f.x").nominal == 1.0

@@ -47,6 +47,7 @@ def expand(statements: Sequence[ast.Statement], path: str) -> Namespace:
     expander.collect_templates(statements, True)
     expander.walk(statements, expander.names.global_scope)
     expander.settle_overrides()
+    expander.check_locals()
     return expander.names
 
 
@@ -58,6 +59,9 @@ class _Expander:
         self.chain: list[int] = []  # the includes that lead to the statements being walked
         # Parameter name → its overrides in walk order, each with the includes that lead to it.
         self.overrides: dict[str, list[tuple[ast.Override, Scope, tuple[int, ...]]]] = {}
+        # Every let and template argument: (scope, name, where, what it is), checked against the
+        # parameters once all are declared (check_locals).
+        self.locals: list[tuple[Scope, str, SourceSpan, str]] = []
 
     def collect_templates(self, statements: Sequence[ast.Statement], top: bool) -> None:
         names = self.names
@@ -106,6 +110,7 @@ class _Expander:
                 assert stmt.value is not None
                 scope.locals[stmt.name] = Lazy(f"let '{stmt.name}'", stmt.value, scope)
                 scope.local_spans[stmt.name] = stmt.name_span or stmt.span
+                self.locals.append((scope, stmt.name, stmt.name_span or stmt.span, f"let '{stmt.name}'"))
             elif isinstance(stmt, ast.Frame):
                 index = self._new_frame(stmt.name, scope, stmt.pose, stmt.keyword, stmt.span, stmt.name_span)
                 child = Scope(names.frames[index].name, scope, index, in_template=scope.in_template)
@@ -171,6 +176,19 @@ class _Expander:
                 names.shadowed.append((stmt, scope))
             names.overrides[name] = found[best][:2]
 
+    def check_locals(self) -> None:
+        """Refuse a ``let`` or template argument with the name of a parameter of its scope: the
+        one would hide the other (``param x`` and ``let x`` in one frame: ``x`` was the let)."""
+        params = self.names.params
+        for scope, name, where, what in self.locals:
+            decl = params.get(scope.join(name))
+            if decl is not None:
+                raise DuplicateNameError(
+                    f"{what} has the name of parameter '{decl.name}' declared at {decl.stmt.span}",
+                    where,
+                    hint="a name means one thing in a scope: rename one of them",
+                )
+
     def _new_frame(
         self,
         name: str,
@@ -233,6 +251,7 @@ class _Expander:
                 assert p.default is not None  # bind() refuses a missing argument without a default
                 inner.locals[p.name] = Lazy(f"argument '{p.name}'", p.default, inner)
             inner.local_spans[p.name] = p.span
+            self.locals.append((inner, p.name, p.span, f"argument '{p.name}' of template '{template.name}'"))
         self.instantiating.append(stmt.template)
         try:
             self.walk(template.body, inner)

@@ -5,13 +5,16 @@ The first pass (:mod:`mbcal.language.expand`) records every declaration here, in
 declarations that the expression compiler (:mod:`mbcal.language.expressions`) compiles on first
 use, once.
 
-Name look-up, innermost first (:meth:`Namespace.lookup`):
+Name look-up (:meth:`Namespace.lookup`):
 
-1. ``let`` definitions and template arguments of the enclosing scopes (a template body sees
-   only its own arguments and lets, and global names — not the caller's);
-2. the constant ``pi``;
-3. parameters, first relative to the enclosing frames (inside ``frame room``, ``x`` finds a
-   parameter declared there, ``room.x``), then by their full name.
+1. the constant ``pi``;
+2. scope by scope, innermost first: its ``let`` definitions and template arguments, then the
+   parameter of that name relative to it (inside ``frame room``, ``x`` finds ``room.x``) — a
+   template body's scopes are its own and the top level, not the caller's;
+3. a parameter by its full name.
+
+A ``let`` or template argument and a parameter of one name in one scope are refused by the first
+pass (:mod:`mbcal.language.expand`): neither hides the other.
 """
 
 from __future__ import annotations
@@ -170,15 +173,12 @@ class Namespace:
         UndefinedNameError
             Nothing visible from ``scope`` has that name (with close matches as a hint).
         """
-        s: Scope | None = scope
-        while s is not None:
-            if name in s.locals:
-                return s.locals[name]
-            s = s.parent
         if name in CONSTANTS:
             return CONSTANTS[name]
-        s = scope
-        while s is not None:
+        s: Scope | None = scope
+        while s is not None:  # innermost first: a frame's own parameter is not hidden by an outer let
+            if name in s.locals:
+                return s.locals[name]
             candidate = s.join(name)
             if candidate in self.params:
                 return self.params[candidate]
