@@ -50,6 +50,11 @@ GOLDEN = {
         "model.mdl:2:5: let 'x' has the name of parameter 'x' declared at model.mdl:1:1 "
         "(a name means one thing in a scope: rename one of them)",
     ),
+    "template_argument_twice": (
+        "template t(a, a) { point p = (a, 0, 0) }\nobject o = t(1 m, 2 m)\n",
+        errors.DuplicateNameError,
+        "model.mdl:1:15: argument 'a' of template 't' is already declared at model.mdl:1:12",
+    ),
     "unit_mismatch_in_sum": (
         "param a = 1 m + 30 deg\n",
         errors.UnitError,

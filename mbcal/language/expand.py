@@ -73,6 +73,7 @@ class _Expander:
                 if stmt.name in names.templates:
                     first = names.templates[stmt.name].span
                     raise DuplicateNameError(f"template '{stmt.name}' is already declared at {first}", stmt.span)
+                _check_arguments(stmt)
                 names.templates[stmt.name] = stmt
             elif isinstance(stmt, ast.Include):
                 if stmt.resolved:
@@ -259,6 +260,18 @@ class _Expander:
             self.instantiating.pop()
         if stmt.body:
             self.walk(stmt.body, Scope(full, scope, index, in_template=scope.in_template))
+
+
+def _check_arguments(template: ast.Template) -> None:
+    """Refuse two arguments of one name in a template's declaration (the second was bound in
+    place of the first: ``template t(a, a)`` took ``t(1 m, 2 m)`` as a = 2 m)."""
+    seen: dict[str, SourceSpan] = {}
+    for p in template.params:
+        if p.name in seen:
+            raise DuplicateNameError(
+                f"argument '{p.name}' of template '{template.name}' is already declared at {seen[p.name]}", p.span
+            )
+        seen[p.name] = p.span
 
 
 def _check_simple_name(name: str, what: str, span: SourceSpan) -> None:
