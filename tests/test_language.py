@@ -433,6 +433,20 @@ def test_camera_intrinsics_and_distortion_may_be_parameters():
     np.testing.assert_allclose(np.asarray(view.distortion), [-0.2, 0, 0, 0.001, 0])
 
 
+def test_unnamed_shapes_never_take_a_name_written_in_their_frame():
+    """An unnamed shape is shapeN by its place among the frame's shapes, but skips a name declared
+    in the frame: 'shape shape1 = ...' and an unnamed second shape were both f.shape1 (the scene
+    said 3 shapes, its glTF held 2 nodes)."""
+    model = load_model_text(
+        "frame f {\n  shape shape1 = sphere(2 m)\n  shape sphere(1 m)\n  shape sphere(1 m)\n}\n"
+        "frame g {\n  shape sphere(1 m)\n  point shape1 = (0, 0, 0)\n  shape box(1, 1, 1)\n"
+        "  shape shape3 = sphere(2 m)\n  shape sphere(1 m)\n}\n"
+    )
+    assert model.names("shape") == ["f.shape1", "f.shape2", "f.shape3", "g.shape0", "g.shape2", "g.shape3", "g.shape4"]
+    with pytest.raises(errors.DuplicateNameError, match=r"^<string>:1:40: 'f.a' is already declared at <string>:1:17"):
+        load_model_text("frame f { shape a = sphere(2 m); shape a = sphere(1 m) }")
+
+
 def test_chessboard_target_names_corners_row_by_row():
     model = load_model_text("target board = chessboard(rows = 2, cols = 3, square = 25 mm) at (1 m, 0, 0)")
     assert model.names("point") == [f"board.r{r}c{c}" for r in range(2) for c in range(3)]

@@ -112,6 +112,8 @@ def _build_model(c: Compiler, unit_overrides: list[tuple[str, Dim, ast.Expr, str
             points.append(PointInfo(d.name, d.frame, node, stmt.span))
         elif isinstance(stmt, ast.Shape):
             n = shape_counter.get(d.frame, 0)
+            while stmt.name is None and d.scope.join(f"shape{n}") in names.declared:
+                n += 1  # an automatic name never takes one written in the frame (shape shape1 = ...)
             shape_counter[d.frame] = n + 1
             name = d.name or d.scope.join(f"shape{n}" if stmt.name is None else stmt.name)
             shapes.append(shape_checker.shape(stmt, d.scope, d.frame, name))
