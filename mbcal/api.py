@@ -21,7 +21,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from mbcal._jax import jax, release_memory
-from mbcal.errors import MbcalError, SolverError
+from mbcal.errors import SolverError
 from mbcal.errors import suggest as suggest_name
 from mbcal.fit import FitConfig, assess_fit, assess_plan
 from mbcal.language.model import Model
@@ -329,10 +329,7 @@ def _candidates(problem: Problem, measured_keys: set) -> tuple[list[dict[str, An
     kinds = list(model.measures) or problem.measurements.kinds
     records = []
     for kind in kinds:
-        try:
-            mm = get_model(kind)
-        except MbcalError:
-            continue
+        mm = get_model(kind)  # every kind is installed: Problem checked the model's, the set its own
         for rec in mm.candidates(model, list(problem.params.configurations)):
             key = (
                 rec["kind"],

@@ -30,7 +30,7 @@ from mbcal.language import soa_math as sm
 from mbcal.language.functions import runtime_functions
 from mbcal.language.model import Model
 from mbcal.measurements.protocol import Batch, MeasurementModel
-from mbcal.measurements.registry import get_model
+from mbcal.measurements.registry import declared_models, get_model
 from mbcal.measurements.sets import MeasurementSet
 from mbcal.modeling import Needs, RpyTriple, modeler, rpy_triples
 from mbcal.params import ParameterSet
@@ -89,6 +89,7 @@ class Problem:
                 f"measurements must be a MeasurementSet (mbcal.read_measurements, measurements_from_records), "
                 f"got {type(measurements).__name__}"
             )
+        declared_models(model)  # a 'measure' kind no installed model provides: located at the statement
         self.model = model
         self.measurements = measurements
         # the caller's values (--set), for problems made from this one (the candidate measurements')

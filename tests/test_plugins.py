@@ -127,3 +127,28 @@ def test_a_model_can_be_registered_from_python():
         warnings.simplefilter("error")
         assert "image_point" in registry()
     assert np.isfinite(get_model("image_point").default_sigma)
+
+
+def test_a_measure_kind_no_installed_model_provides_is_reported_at_the_statement_when_the_model_is_used():
+    """'measure image_point, image_pointt' checked fine and solve/observe never mentioned the typo
+    (docs/language.md: kinds not installed are reported when the model is used); 'mbcal check'
+    loads no measurement model, so it still accepts the model."""
+    from mbcal import load_model_text, measurements_from_records
+    from mbcal.errors import MdlError
+    from mbcal.measurements.sets import MeasurementSet
+    from mbcal.problem import Problem
+
+    model = load_model_text("param a = 1 m\npoint p = (a, 0, 0)\nmeasure point3d,\n  image_pointt\n")
+    assert model.measures == ("point3d", "image_pointt")
+    record = {"kind": "point3d", "point": "p", "x": 1, "y": 0, "z": 0, "sigma": 0.001}
+    with pytest.raises(MdlError) as info:
+        measurements_from_records([record], model)
+    message = "<string>:4:3: no installed measurement model provides 'image_pointt' (installed:"
+    assert str(info.value).startswith(message)
+    assert "point3d" in info.value.message and info.value.hint == "did you mean 'image_point'?"
+    data = measurements_from_records([record], None)  # built without the model: the problem says it
+    assert isinstance(data, MeasurementSet)
+    with pytest.raises(MdlError, match=r"^<string>:4:3: no installed measurement model provides 'image_pointt'"):
+        Problem(model, data, ["a"])
+    ok = load_model_text("param a = 1 m\npoint p = (a, 0, 0)\nmeasure point3d\n")
+    assert len(Problem(ok, measurements_from_records([record], ok), ["a"]).groups) == 1

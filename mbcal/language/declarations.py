@@ -138,6 +138,7 @@ def _build_model(c: Compiler, unit_overrides: list[tuple[str, Dim, ast.Expr, str
         ranges=tuple(ranges),
         shapes=tuple(shapes),
         measures=tuple(names.measures),
+        measure_spans=tuple(names.measure_spans),
         targets=tuple(targets),
         templates=tuple(names.templates),
         files=tuple(dict.fromkeys(names.files)),

@@ -145,7 +145,11 @@ class _Expander:
                     )
                 self.overrides.setdefault(stmt.name, []).append((stmt, scope, tuple(self.chain)))
             elif isinstance(stmt, ast.Measure):
-                names.measures.extend(k for k in stmt.kinds if k not in names.measures)
+                spans = stmt.kind_spans or (stmt.span,) * len(stmt.kinds)
+                for kind, where in zip(stmt.kinds, spans):
+                    if kind not in names.measures:
+                        names.measures.append(kind)
+                        names.measure_spans.append(where)
             else:  # pragma: no cover - every statement type is handled above
                 raise MdlError(f"unsupported statement {type(stmt).__name__}", stmt.span)
 

@@ -249,6 +249,9 @@ class Model:
     shapes: tuple[ShapeInfo, ...]
     measures: tuple[str, ...] = ()
     targets: tuple[TargetInfo, ...] = ()
+    # Where each of ``measures`` is named (its 'measure' statement), for the error of a kind no
+    # installed measurement model provides (mbcal.measurements.registry.declared_models).
+    measure_spans: tuple[SourceSpan, ...] = field(default=(), repr=False)
     templates: tuple[str, ...] = ()
     files: tuple[str, ...] = ()
     data_files: tuple[str, ...] = ()

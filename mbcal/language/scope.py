@@ -134,6 +134,8 @@ class Namespace:
         Frame index → its joint statement.
     measures : list of str
         The measurement models named by ``measure``.
+    measure_spans : list of SourceSpan
+        Where each of :attr:`measures` is first named.
     files : list of str
         The model file and every file it includes.
     data_files : list of str
@@ -158,6 +160,7 @@ class Namespace:
     deferred: list[Deferred] = field(default_factory=list)
     joints: dict[int, Deferred] = field(default_factory=dict)
     measures: list[str] = field(default_factory=list)
+    measure_spans: list[SourceSpan] = field(default_factory=list)
     files: list[str] = field(default_factory=list)
     data_files: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)

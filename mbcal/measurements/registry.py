@@ -18,11 +18,19 @@ import warnings
 from importlib import metadata
 
 from mbcal.cache import source_fingerprint
-from mbcal.errors import MeasurementFileError, suggest
+from mbcal.errors import MdlError, MeasurementFileError, suggest
+from mbcal.language.model import Model
 from mbcal.measurements.builtin import BUILTINS
 from mbcal.measurements.protocol import MeasurementModel
 
-__all__ = ["registry", "get_model", "register", "register_measurement_model", "ENTRY_POINT_GROUP"]
+__all__ = [
+    "registry",
+    "get_model",
+    "declared_models",
+    "register",
+    "register_measurement_model",
+    "ENTRY_POINT_GROUP",
+]
 
 ENTRY_POINT_GROUP = "mbcal.measurements"
 
@@ -99,3 +107,29 @@ def get_model(kind: str) -> MeasurementModel:
         f"unknown measurement kind '{kind}' (available: {available})",
         hint=suggest(kind, models) or "plugins register kinds through the 'mbcal.measurements' entry point group",
     )
+
+
+def declared_models(model: Model) -> dict[str, MeasurementModel]:
+    """The measurement models a model's ``measure`` statements name, by kind.
+
+    ``mbcal check`` loads no measurement model (nor JAX): a kind no installed model provides is
+    reported here, when the model is used with measurements (a measurement set built for it, a
+    problem).
+
+    Raises
+    ------
+    MdlError
+        A kind that no installed model provides, located at its ``measure`` statement, with the
+        installed kinds and close matches.
+    """
+    models = registry()
+    spans = model.measure_spans
+    for i, kind in enumerate(model.measures):
+        if kind not in models:
+            raise MdlError(
+                f"no installed measurement model provides '{kind}' (installed: {', '.join(sorted(models))})",
+                spans[i] if i < len(spans) else None,
+                hint=suggest(kind, models)
+                or "a plugin registers its kinds through the 'mbcal.measurements' entry point group (docs/plugins.md)",
+            )
+    return {kind: models[kind] for kind in model.measures}

@@ -19,7 +19,7 @@ import numpy as np
 
 from mbcal.errors import MbcalError, MeasurementFileError, SourceSpan, shown, suggest
 from mbcal.measurements.protocol import MeasurementModel
-from mbcal.measurements.registry import registry
+from mbcal.measurements.registry import declared_models, registry
 from mbcal.units import ANGLE, DIMENSIONLESS, LENGTH, UNITS, Dim, describe
 
 __all__ = [
@@ -425,7 +425,8 @@ class SetBuilder:
         self.known: dict[str, float] = {}
         self.configurations: dict[str, dict[str, float]] = {}
         self.images: dict[str, str] = {}
-        self.declared = set(model.measures) if model is not None else set()
+        # the model's 'measure' kinds, each installed (else a located error at the statement)
+        self.declared = set(declared_models(model)) if model is not None else set()
         # Diagonal covariances are shared between measurements with the same σ (read-only): a file
         # of a million rows holds a handful of them, not a million.
         self._covariances: dict[tuple[str, tuple[float, ...]], np.ndarray] = {}
