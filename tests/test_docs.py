@@ -74,6 +74,17 @@ def test_language_reference_has_an_example_for_every_statement():
     assert "## Errors" in text
 
 
+def test_the_reserved_words_listed_are_the_languages():
+    """The list omitted 'override' (a parameter called so was refused without the page saying so)."""
+    from mbcal.language.parse import RESERVED
+
+    text = (ROOT / "docs" / "language.md").read_text(encoding="utf-8")
+    section = text.split("## Reserved words and conventions", 1)[1]
+    listed = re.search(r"^Reserved \(.*?\): `([^`]*)`", section, re.S | re.M)
+    assert listed is not None
+    assert sorted(listed.group(1).split()) == sorted(RESERVED)
+
+
 PY_DOCS = [p for p in DOCS if blocks(p, "python")]
 
 

@@ -237,6 +237,29 @@ GOLDEN = {
         errors.MdlError,
         "model.mdl:1:7: 'at' is a reserved word and cannot name a frame",
     ),
+    "let_named_inf": (
+        "let inf = 5 m\nparam a = 1 m limits [0 m, inf]\n",
+        errors.MdlError,
+        "model.mdl:1:5: 'inf' is a reserved word and cannot name a let",
+    ),
+    "parameter_name_ending_in_pi": (
+        "param f.pi = 3\nframe f { point p = (pi, 0, 0) }\n",
+        errors.MdlError,
+        "model.mdl:1:7: 'pi' is a reserved word and cannot end a parameter name: 'f.pi'",
+    ),
+    "let_named_like_an_axis": (
+        "param q = 0 deg\nlet z = (1, 0, 0)\nframe f { joint revolute(z, q) }\n",
+        errors.MdlError,
+        "model.mdl:2:5: 'z' is the z axis where an axis is written (joint, axis_angle, look_at's up) and cannot "
+        "name a let (give the let another name; an axis may be any 3-vector: joint revolute(my_axis, q))",
+    ),
+    "template_argument_named_like_an_axis": (
+        "template hinge(x) { joint revolute(x, 0 deg) }\nobject h = hinge((0, 1, 0))\n",
+        errors.MdlError,
+        "model.mdl:1:16: 'x' is the x axis where an axis is written (joint, axis_angle, look_at's up) and cannot "
+        "name a template argument (give the template argument another name; an axis may be any 3-vector: "
+        "joint revolute(my_axis, q))",
+    ),
     "sigma_with_wrong_unit": (
         "param a = 0 m sigma 1 deg\n",
         errors.UnitError,
@@ -398,9 +421,9 @@ def test_a_byte_order_mark_is_skipped_and_bytes_that_are_not_utf8_are_located(tm
             "let 'x' has the name of parameter 'o.x' declared at model.mdl:2:3",
         ),
         (
-            "template t(x) {\n  param x = 1 m\n  point p = (x, 0, 0)\n}\nobject o = t(5 cm)\n",
+            "template t(w) {\n  param w = 1 m\n  point p = (w, 0, 0)\n}\nobject o = t(5 cm)\n",
             "1:12",
-            "argument 'x' of template 't' has the name of parameter 'o.x' declared at model.mdl:2:3",
+            "argument 'w' of template 't' has the name of parameter 'o.w' declared at model.mdl:2:3",
         ),
     ],
 )
@@ -418,8 +441,8 @@ def test_an_inner_parameter_is_found_before_an_outer_let(write_model):
     let of the same name at the top level; a let inside a frame still hides an outer parameter."""
     model = load_model(
         write_model(
-            "let x = 5 cm\nframe f {\n  param x = 1 m\n  point p = (x, 0, 0)\n}\n"
-            "param y = 1 m\nframe g {\n  let y = 2 cm\n  point p = (y, 0, 0)\n}\n"
+            "let u = 5 cm\nframe f {\n  param u = 1 m\n  point p = (u, 0, 0)\n}\n"
+            "param v = 1 m\nframe g {\n  let v = 2 cm\n  point p = (v, 0, 0)\n}\n"
         )
     )
     from mbcal.modeling import modeler
@@ -427,4 +450,4 @@ def test_an_inner_parameter_is_found_before_an_outer_let(write_model):
     scene = modeler(model, model.nominal)
     assert scene.point("f.p")[0] == pytest.approx(1.0)
     assert scene.point("g.p")[0] == pytest.approx(0.02)
-    assert model.param("f.x").nominal == 1.0
+    assert model.param("f.u").nominal == 1.0

@@ -14,7 +14,7 @@ from mbcal.errors import DuplicateNameError, MdlError, SourceSpan, UndefinedName
 from mbcal.language import ast
 from mbcal.language.arguments import bind
 from mbcal.language.parse import RESERVED
-from mbcal.language.scope import Deferred, FrameDecl, Lazy, Namespace, ParamDecl, Scope
+from mbcal.language.scope import AXES, Deferred, FrameDecl, Lazy, Namespace, ParamDecl, Scope
 
 __all__ = ["expand", "MAX_TEMPLATE_DEPTH", "MAX_FRAMES"]
 
@@ -183,7 +183,8 @@ class _Expander:
 
     def check_locals(self) -> None:
         """Refuse a ``let`` or template argument with the name of a parameter of its scope: the
-        one would hide the other (``param x`` and ``let x`` in one frame: ``x`` was the let)."""
+        one would hide the other (``param x`` and ``let x`` in one frame: ``x`` was the let); and a
+        ``let`` named like an axis."""
         params = self.names.params
         for scope, name, where, what in self.locals:
             decl = params.get(scope.join(name))
@@ -193,6 +194,8 @@ class _Expander:
                     where,
                     hint="a name means one thing in a scope: rename one of them",
                 )
+            if what.startswith("let"):  # a template's arguments are checked where it is declared
+                _check_not_an_axis(name, "let", where)
 
     def _new_frame(
         self,
@@ -221,6 +224,12 @@ class _Expander:
             names = [f"{stmt.name}{i}" for i in range(lo, hi + 1)]
         if stmt.name in RESERVED:
             raise MdlError(f"'{stmt.name}' is a reserved word and cannot name a parameter", stmt.name_span or stmt.span)
+        last = stmt.name.rsplit(".", 1)[-1]
+        if last in ("pi", "inf"):  # inside frame f, 'pi' is the constant, not f.pi: one would be hidden
+            raise MdlError(
+                f"'{last}' is a reserved word and cannot end a parameter name: '{stmt.name}'",
+                stmt.name_span or stmt.span,
+            )
         for name in names:
             full = scope.join(name)
             if full in params:
@@ -271,11 +280,25 @@ def _check_arguments(template: ast.Template) -> None:
     place of the first: ``template t(a, a)`` took ``t(1 m, 2 m)`` as a = 2 m)."""
     seen: dict[str, SourceSpan] = {}
     for p in template.params:
+        _check_simple_name(p.name, "template argument", p.span)
+        _check_not_an_axis(p.name, "template argument", p.span)
         if p.name in seen:
             raise DuplicateNameError(
                 f"argument '{p.name}' of template '{template.name}' is already declared at {seen[p.name]}", p.span
             )
         seen[p.name] = p.span
+
+
+def _check_not_an_axis(name: str, what: str, span: SourceSpan) -> None:
+    """Refuse ``let z = ...``: where an axis is written, ``z`` is the z axis, so the let was used
+    everywhere else but there (a parameter is a number, never an axis: it may be called ``z``)."""
+    if name in AXES:
+        raise MdlError(
+            f"'{name}' is the {name} axis where an axis is written (joint, axis_angle, look_at's up) "
+            f"and cannot name a {what}",
+            span,
+            hint=f"give the {what} another name; an axis may be any 3-vector: joint revolute(my_axis, q)",
+        )
 
 
 def _check_simple_name(name: str, what: str, span: SourceSpan) -> None:

@@ -34,12 +34,10 @@ from mbcal.language.graph import (
 )
 from mbcal.language.ir import make_op
 from mbcal.language.model import ParamInfo
-from mbcal.language.scope import Lazy, Namespace, ParamDecl, Scope
+from mbcal.language.scope import AXES, Lazy, Namespace, ParamDecl, Scope
 from mbcal.units import ANGLE, DIMENSIONLESS, LENGTH, UNITS, Dim, describe, fits, unify, within
 
 __all__ = ["Compiler", "AXES", "literal_unit"]
-
-AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
 
 
 def _infinity(expr: ast.Expr) -> int | None:

@@ -41,12 +41,13 @@ __all__ = [
     "MAX_INCLUDE_DEPTH",
 ]
 
-# The language's keywords: no name may be one of them.
+# The language's keywords and the names it gives a value (pi; inf, an open end of limits [...]): no
+# name may be one of them (docs/language.md lists them).
 RESERVED = frozenset(
     {
         "include", "param", "let", "template", "frame", "object", "link", "shape", "point",
         "joint", "camera", "range", "target", "measure", "override", "at", "in", "sigma", "per",
-        "configuration", "pi", "world", "bounded", "limits",
+        "configuration", "pi", "inf", "world", "bounded", "limits",
     }
 )  # fmt: skip
 

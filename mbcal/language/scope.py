@@ -27,9 +27,12 @@ from mbcal.language import ast
 from mbcal.language.graph import Node, ParamRef
 from mbcal.language.model import ParamInfo
 
-__all__ = ["CONSTANTS", "Scope", "Lazy", "ParamDecl", "FrameDecl", "Deferred", "Namespace"]
+__all__ = ["CONSTANTS", "AXES", "Scope", "Lazy", "ParamDecl", "FrameDecl", "Deferred", "Namespace"]
 
 CONSTANTS = {"pi": math.pi}
+# Where an axis is written (a joint's, axis_angle's, look_at's up), x, y and z (or -x, ...) are the
+# axes: a let or template argument may not take these names (mbcal.language.expand).
+AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
 
 
 @dataclass(eq=False)
