@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from mbcal import errors
-from mbcal.language import load_model
+from mbcal.language import load_model, load_model_text
 
 # name → (model text, error type, exact "path:line:col: message" as str(error))
 GOLDEN = {
@@ -260,6 +260,28 @@ GOLDEN = {
         "name a template argument (give the template argument another name; an axis may be any 3-vector: "
         "joint revolute(my_axis, q))",
     ),
+    "vector_plus_transform": (
+        "frame f at (1 m, 0, 0) + rot_z(10 deg)\n",
+        errors.MdlTypeError,
+        "model.mdl:1:12: cannot add a 3-vector and a transform",
+    ),
+    "transform_times_a_number": (
+        "frame f at rot_z(10 deg) * 2\n",
+        errors.MdlTypeError,
+        "model.mdl:1:12: cannot multiply a transform by a scalar (a transform is multiplied by a transform, or by a "
+        "position (x, y, z) that stands for a translation)",
+    ),
+    "template_called_as_a_function": (
+        "template t(a) { point p = (a, 0, 0) }\npoint q = t(1 m)\n",
+        errors.MdlTypeError,
+        "model.mdl:2:11: 't' is a template, not a function (a template is instantiated as a frame: "
+        "object NAME = t(...))",
+    ),
+    "nul_byte_at_its_column": (
+        "param a = 1 m\nparam b = 2 m \x00\n",
+        errors.MdlSyntaxError,
+        "model.mdl:2:15: file contains a NUL byte (is it a binary file?)",
+    ),
     "sigma_with_wrong_unit": (
         "param a = 0 m sigma 1 deg\n",
         errors.UnitError,
@@ -451,3 +473,15 @@ def test_an_inner_parameter_is_found_before_an_outer_let(write_model):
     assert scene.point("f.p")[0] == pytest.approx(1.0)
     assert scene.point("g.p")[0] == pytest.approx(0.02)
     assert model.param("f.u").nominal == 1.0
+
+
+def test_a_lone_surrogate_in_model_text_is_a_located_error():
+    """A str with a lone surrogate (bytes decoded with errors='surrogateescape') raised a raw
+    UnicodeEncodeError; its rendering shows the line with U+FFFD in its place (printable)."""
+    with pytest.raises(errors.MdlSyntaxError) as info:
+        load_model_text("param a = 1 m # \udc80")
+    assert str(info.value) == (
+        "<string>:1:17: the text holds U+DC80, a lone surrogate, which is not Unicode text "
+        "(was it decoded with errors='surrogateescape'?)"
+    )
+    info.value.render().encode("utf-8")

@@ -324,7 +324,7 @@ class Compiler:
         if op in "+-":
             if a.kind != b.kind or a.size != b.size or a.kind == TRANSFORM:
                 raise MdlTypeError(
-                    f"cannot {'add' if op == '+' else 'subtract'} {describe_kind(b)} and {describe_kind(a)}", span
+                    f"cannot {'add' if op == '+' else 'subtract'} {describe_kind(a)} and {describe_kind(b)}", span
                 )
             ok, dim = unify(a.dim, b.dim)
             if not ok:
@@ -349,7 +349,13 @@ class Compiler:
                 t = make_op("translate", [v], TRANSFORM, None, 0, v_expr.span)
                 a, b = (t, b) if a.kind == VECTOR else (a, t)
                 return make_op("compose", [a, b], TRANSFORM, None, 0, span)
-            if TRANSFORM in (a.kind, b.kind) or (a.kind == VECTOR and b.kind == VECTOR):
+            if TRANSFORM in (a.kind, b.kind):
+                raise MdlTypeError(
+                    f"cannot multiply {describe_kind(a)} by {describe_kind(b)} (a transform is multiplied by a "
+                    "transform, or by a position (x, y, z) that stands for a translation)",
+                    span,
+                )
+            if a.kind == VECTOR and b.kind == VECTOR:
                 raise MdlTypeError(
                     f"cannot multiply {describe_kind(a)} by {describe_kind(b)} (use dot() or cross())", span
                 )
@@ -375,12 +381,14 @@ class Compiler:
     def _call(self, expr: ast.Call, scope: Scope) -> Node:
         function = get_function(expr.func)
         if function is None:
-            templates = self.names.templates
-            hint = suggest(expr.func, list(function_names()) + list(templates))
-            extra = ""
-            if expr.func in templates:
-                extra = " (templates are instantiated with 'object NAME = template(...)')"
-            raise UndefinedNameError(f"unknown function '{expr.func}'{extra}", expr.span, hint=hint)
+            if expr.func in self.names.templates:
+                raise MdlTypeError(
+                    f"'{expr.func}' is a template, not a function",
+                    expr.span,
+                    hint=f"a template is instantiated as a frame: object NAME = {expr.func}(...)",
+                )
+            hint = suggest(expr.func, list(function_names()) + list(self.names.templates))
+            raise UndefinedNameError(f"unknown function '{expr.func}'", expr.span, hint=hint)
         bound = bind(expr.func, function.parameters, expr.args, expr.kwargs, expr.span)
         return function.typing(_Call(self, expr.func, bound, scope, expr.span))
 

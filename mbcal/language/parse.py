@@ -55,6 +55,8 @@ MAX_INCLUDE_DEPTH = 32
 # Guard against pathological inputs (deep parentheses make Lark's and our own recursion deep).
 MAX_SOURCE_BYTES = 8 * 1024 * 1024
 MAX_NESTING = 200
+# A code point of UTF-16's surrogate range: not a character, and not encodable as UTF-8.
+_SURROGATE = re.compile("[\ud800-\udfff]")
 
 
 def grammar_text() -> str:
@@ -92,8 +94,17 @@ def parse_text(text: str, path: str = "<string>") -> tuple[ast.Statement, ...]:
     if len(text.encode("utf-8", errors="replace")) > MAX_SOURCE_BYTES:
         raise MdlSyntaxError(f"file is larger than {MAX_SOURCE_BYTES // (1024 * 1024)} MiB", SourceSpan(path, 1, 1))
     if "\x00" in text:
-        line = text.count("\n", 0, text.index("\x00")) + 1
-        raise MdlSyntaxError("file contains a NUL byte (is it a binary file?)", SourceSpan(path, line, 1))
+        raise MdlSyntaxError(
+            "file contains a NUL byte (is it a binary file?)", SourceSpan.at_offset(path, text, text.index("\x00"))
+        )
+    surrogate = _SURROGATE.search(text)
+    if surrogate is not None:  # only a str made in Python holds one: a file is decoded strictly
+        remember_source(path, _SURROGATE.sub("\ufffd", text))  # the line shown must be printable
+        raise MdlSyntaxError(
+            f"the text holds U+{ord(surrogate.group()):04X}, a lone surrogate, which is not Unicode text "
+            "(was it decoded with errors='surrogateescape'?)",
+            SourceSpan.at_offset(path, text, surrogate.start()),
+        )
     _check_nesting(text, path)
     from mbcal.language.syntax import statements  # Lark: only for a text not parsed before
 
