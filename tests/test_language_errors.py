@@ -282,6 +282,12 @@ GOLDEN = {
         errors.MdlSyntaxError,
         "model.mdl:2:15: file contains a NUL byte (is it a binary file?)",
     ),
+    "sum_of_300_terms": (
+        "param a = 1 m\nparam b = " + " + ".join(["1 m"] * 300) + "\n",
+        errors.MdlSyntaxError,
+        "model.mdl:2:11: expression too deep: more than 300 levels of operators, calls and vectors (each operator "
+        "of a chain a + b + c + ... is one) (split it with lets: let part1 = a + b + ...)",
+    ),
     "sigma_with_wrong_unit": (
         "param a = 0 m sigma 1 deg\n",
         errors.UnitError,

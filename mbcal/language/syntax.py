@@ -23,8 +23,14 @@ from mbcal.resources import grammar_path
 __all__ = ["statements", "MAX_TREE_DEPTH"]
 
 # Deepest syntax tree accepted (operators, calls, frames): deeper input is refused with a located
-# error before any recursive walk can overflow Python's stack.
+# error before any recursive walk can overflow Python's stack.  Every operator of a chain
+# (a + b + c ...) is a level of the tree: a sum of 300 terms is that deep.  The walks need about
+# 1 kB of C stack a level: 300 levels load in a thread of 256 kB of stack (600 did not).
 MAX_TREE_DEPTH = 300
+# The tree's expression nodes: a too-deep path is reported at its outermost expression.
+_EXPRESSIONS = frozenset(
+    {"add", "sub", "mul", "div", "pow", "neg", "call", "arguments", "keyword_argument", "vector", "list"}
+)
 
 
 def statements(text: str, path: str) -> tuple[ast.Statement, ...]:
@@ -436,18 +442,26 @@ def _unquote(text: str) -> str:
 
 
 def _check_depth(tree: lark.Tree, path: str) -> None:
-    """Refuse trees deeper than MAX_TREE_DEPTH (iteratively: no recursion here)."""
-    stack = [(tree, 1)]
+    """Refuse trees deeper than MAX_TREE_DEPTH (iteratively: no recursion here), located at the
+    outermost expression of the too-deep path (a statement's whole sum, not one of its terms)."""
+    stack: list[tuple[lark.Tree, int, lark.Tree | None]] = [(tree, 1, None)]
     while stack:
-        node, depth = stack.pop()
+        node, depth, root = stack.pop()
+        if root is None and node.data in _EXPRESSIONS:
+            root = node
         if depth > MAX_TREE_DEPTH:
-            meta = getattr(node, "meta", None)
+            meta = getattr(root if root is not None else node, "meta", None)
             line = getattr(meta, "line", 1) or 1
             column = getattr(meta, "column", 1) or 1
+            span = SourceSpan(path, line, column, getattr(meta, "end_line", None), getattr(meta, "end_column", None))
+            if root is None:  # a frame and its { block } are two levels
+                raise MdlSyntaxError(f"frames nested too deeply (at most about {MAX_TREE_DEPTH // 2})", span)
             raise MdlSyntaxError(
-                f"nested too deeply (more than {MAX_TREE_DEPTH} levels of expressions or frames)",
-                SourceSpan(path, line, column),
+                f"expression too deep: more than {MAX_TREE_DEPTH} levels of operators, calls and vectors "
+                "(each operator of a chain a + b + c + ... is one)",
+                span,
+                hint="split it with lets: let part1 = a + b + ...",
             )
         for child in node.children:
             if isinstance(child, lark.Tree):
-                stack.append((child, depth + 1))
+                stack.append((child, depth + 1, root))
