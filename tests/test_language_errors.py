@@ -364,6 +364,36 @@ def test_an_override_an_including_file_replaces_is_still_checked(write_model):
     assert str(info.value) == "part.mdl:2:14: the override 7 m of 'a' lies outside its limits [0 m, 5 m]"
 
 
+@pytest.mark.parametrize(
+    "part, message",
+    [
+        (
+            "template marker() { point m = (0, 0, 1 cm) }\n",
+            "parts/p.mdl:1:1: template 'marker' is declared in a file included inside a frame or template "
+            "(at model.mdl:2:3): a file that declares templates is included at the top level",
+        ),
+        (
+            "param q = 1 m\noverride q = 2 m\n",
+            "parts/p.mdl:2:1: 'override' in a file included inside a frame or template (at model.mdl:2:3): "
+            "a file with overrides is included at the top level",
+        ),
+    ],
+)
+def test_a_file_with_templates_or_overrides_included_inside_a_frame_names_the_include(part, message, write_model):
+    """They are at the top level of their own file: 'templates are declared at the top level of a
+    file' did not say what to change."""
+    write_model(part, "parts/p.mdl")
+    with pytest.raises(errors.MdlError) as info:
+        load_model(write_model('frame f {\n  include "parts/p.mdl"\n}\n'))
+    assert str(info.value).startswith(message)
+    assert load_model(write_model('include "parts/p.mdl"\n')).names("param") in ([], ["q"])  # at the top: fine
+
+
+def test_a_template_declared_in_a_template_is_refused_not_ignored():
+    with pytest.raises(errors.MdlError, match=r"^<string>:1:16: templates are declared at the top level of a file"):
+        load_model_text("template a() { template b() { point p = (0, 0, 0) } }\n")
+
+
 def test_include_cycle_is_reported_with_the_chain(write_model):
     write_model('include "b.mdl"\n', "a.mdl")
     write_model('include "a.mdl"\n', "b.mdl")

@@ -63,10 +63,22 @@ class _Expander:
         # parameters once all are declared (check_locals).
         self.locals: list[tuple[Scope, str, SourceSpan, str]] = []
 
-    def collect_templates(self, statements: Sequence[ast.Statement], top: bool) -> None:
+    def collect_templates(
+        self, statements: Sequence[ast.Statement], top: bool, mounted: ast.Include | None = None
+    ) -> None:
+        """Record the templates; ``mounted``: the include, inside a frame or template, of the file
+        whose top level ``statements`` are (for the message: its templates are at the top level of
+        their own file)."""
         names = self.names
         for stmt in statements:
             if isinstance(stmt, ast.Template):
+                if mounted is not None:
+                    raise MdlError(
+                        f"template '{stmt.name}' is declared in a file included inside a frame or template "
+                        f"(at {mounted.span}): a file that declares templates is included at the top level",
+                        stmt.span,
+                        hint="move the include out of the frame, or the template to a file included at the top level",
+                    )
                 if not top:
                     raise MdlError("templates are declared at the top level of a file", stmt.span)
                 _check_simple_name(stmt.name, "template", stmt.name_span or stmt.span)
@@ -75,10 +87,12 @@ class _Expander:
                     raise DuplicateNameError(f"template '{stmt.name}' is already declared at {first}", stmt.span)
                 _check_arguments(stmt)
                 names.templates[stmt.name] = stmt
+                self.collect_templates(stmt.body, False)  # one declared in it was silently ignored
             elif isinstance(stmt, ast.Include):
                 if stmt.resolved:
                     names.files.append(stmt.resolved)
-                self.collect_templates(stmt.statements, top)
+                # a file included inside a frame: the outermost such include is the one to move
+                self.collect_templates(stmt.statements, top, None if top else mounted or stmt)
             elif isinstance(stmt, (ast.Frame, ast.Instance)):
                 self.collect_templates(stmt.body, False)
 
@@ -88,14 +102,17 @@ class _Expander:
             raise DuplicateNameError(f"'{full}' is already declared at {declared[full]}", span)
         declared[full] = span
 
-    def walk(self, statements: Sequence[ast.Statement], scope: Scope) -> None:
+    def walk(self, statements: Sequence[ast.Statement], scope: Scope, mounted: ast.Include | None = None) -> None:
+        """Record the declarations of ``statements`` in ``scope``; ``mounted`` as for
+        :meth:`collect_templates`."""
         names = self.names
         for stmt in statements:
             if isinstance(stmt, ast.Include):
                 self.includes += 1
                 self.chain.append(self.includes)
+                inside = bool(scope.path or scope.in_template)
                 try:
-                    self.walk(stmt.statements, scope)
+                    self.walk(stmt.statements, scope, mounted or stmt if inside else None)
                 finally:
                     self.chain.pop()
             elif isinstance(stmt, ast.Template):
@@ -139,6 +156,13 @@ class _Expander:
                 )
                 names.deferred.append(Deferred(stmt, scope, index, names.frames[index].name))
             elif isinstance(stmt, ast.Override):
+                if mounted is not None:
+                    raise MdlError(
+                        f"'override' in a file included inside a frame or template (at {mounted.span}): a file "
+                        "with overrides is included at the top level",
+                        stmt.span,
+                        hint="move the include out of the frame, or the override to the including file",
+                    )
                 if scope.path or scope.in_template:
                     raise MdlError(
                         "'override' is written at the top level of a file, with the full parameter name", stmt.span
