@@ -589,6 +589,64 @@ def test_an_edit_after_a_solve_keeps_its_result_out_of_the_save(small):
     assert engine.save("csv")["written"] == ["measurements.csv"] and not (out / "report.json").exists()
 
 
+def _blocked_solve(monkeypatch):
+    """The engine's solver held until the returned event is set: an edit lands while it runs."""
+    import threading
+
+    import mbcal.studio.engine as studio_engine
+
+    release = threading.Event()
+    real = studio_engine.calibrate
+
+    def held(*args, **kwargs):
+        assert release.wait(timeout=120)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(studio_engine, "calibrate", held)
+    return release
+
+
+def _solved(engine: Engine, timeout: float = 120.0) -> dict:
+    import time
+
+    end = time.monotonic() + timeout
+    while not engine.solve_status()["done"]:
+        assert time.monotonic() < end, "the solve did not finish"
+        time.sleep(0.05)
+    return engine.solve_status()
+
+
+BLOCK_CLICKS = [
+    {"id": f"c{i}", "camera": "cam", "config": "default", "point": f"block.{name}", "u": u, "v": v, "sigma": 1.0}
+    for i, (name, u, v) in enumerate([("a", 130.0, 97.0), ("b", 190.0, 97.0), ("c", 190.0, 142.0), ("d", 130.0, 142.0)])
+]
+
+
+def test_a_solve_that_finishes_after_an_edit_is_stale_not_saved_and_keeps_the_new_values(small, monkeypatch):
+    model, photo, out = small
+    engine = Engine(model, [], [("cam", "default", photo)], out)
+    engine.set_session(BLOCK_CLICKS, ["block.x", "block.y"], {}, [])
+    release = _blocked_solve(monkeypatch)
+    engine.start_solve(restarts=2)
+    # The operator corrects every click by 3 px and moves a slider while the solve runs.
+    moved = [dict(c, u=c["u"] + 3.0) for c in BLOCK_CLICKS]
+    engine.set_session(moved, ["block.x", "block.y"], {"block.x": 0.02}, [])
+    release.set()
+    status = _solved(engine)
+    assert status["error"] is None and status["stale"] and "report" not in status
+    assert engine.result is None  # not the current result: Save must not write it beside the new clicks
+    assert engine.session.values == {"block.x": 0.02}  # the operator's value, not the solve's
+    saved = json.loads((out / SESSION_FILE).read_text())
+    assert saved["values"] == {"block.x": 0.02} and saved["clicks"][0]["u"] == 133.0
+    assert engine.save("csv")["written"] == ["measurements.csv"]
+    assert not (out / "report.json").exists() and not (out / "small_calibrated.mdl").exists()
+    # Solved again, unedited: the result is adopted.
+    engine.start_solve(restarts=2)
+    status = _solved(engine)
+    assert not status["stale"] and status["report"]["params"]
+    assert engine.result is not None and set(engine.session.values) == {"block.x", "block.y"}
+
+
 def test_imported_ids_stay_unique_and_configuration_names_are_checked(small, tmp_path):
     model, photo, out = small
     clicks = tmp_path / "clicks.json"

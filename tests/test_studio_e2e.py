@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_studio import click_point, open_page
+from test_studio import BLOCK_CLICKS, SMALL, _blocked_solve, _photo, _session_when, click_point, open_page
 
 from mbcal.studio.engine import Engine
 from mbcal.studio.server import StudioServer
@@ -253,3 +253,38 @@ def test_the_printed_url_accepts_connections_at_once(tmp_path):
     finally:
         proc.terminate()
         proc.wait(timeout=30)
+
+
+def test_a_solve_edited_under_says_so_in_the_page_and_keeps_the_edit(browser, images, tmp_path, monkeypatch):
+    """An edit while the solve runs: the page says the result is not used, keeps its values (the
+    sliders are not moved to the stale estimate) and shows no report of it; a new solve clears it."""
+    model = tmp_path / "small.mdl"
+    model.write_text(SMALL, encoding="utf-8")
+    out = tmp_path / "out"
+    engine = Engine(model, [], [("cam", "default", _photo(tmp_path / "photo.png"))], out)
+    engine.set_session(BLOCK_CLICKS, ["block.x", "block.y"], {}, [])
+    release = _blocked_solve(monkeypatch)
+    srv = StudioServer(engine).start()
+    try:
+        page = open_page(browser, srv.url, 1400, 900)
+        page.wait_for_selector("svg[data-photo='p0'] .wire path")
+        page.fill("#restarts", "2")
+        page.click("#solve")
+        page.wait_for_function("() => document.querySelector('#status').textContent.startsWith('solving')")
+        page.fill("input[data-sigma='c0']", "0.5")  # an edit while it runs
+        page.press("input[data-sigma='c0']", "Enter")
+        _session_when(out, lambda s: s["clicks"][0]["sigma"] == 0.5)
+        release.set()
+        page.wait_for_selector("body[data-solved='stale']", timeout=120_000)
+        assert page.is_visible("#stale") and "solve again" in page.inner_text("#stale")
+        assert page.evaluate("() => window.studio.values") == {}
+        assert page.inner_text("#estimates") == ""
+        page.screenshot(path=str(images / "studio-stale.png"))
+        page.click("#solve")  # solved again, unedited: adopted, and the notice goes
+        page.wait_for_selector("body[data-solved='1']", timeout=120_000)
+        assert not page.is_visible("#stale")
+        assert set(page.evaluate("() => Object.keys(window.studio.values)")) == {"block.x", "block.y"}
+        page.close()
+    finally:
+        srv.stop()
+    assert engine.result is not None

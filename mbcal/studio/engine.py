@@ -18,7 +18,7 @@ import re
 import threading
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import astuple, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -38,10 +38,15 @@ from mbcal.modeling import modeler
 from mbcal.outputs import atomic_write, check_output
 from mbcal.studio.session import SESSION_FILE, Click, Session, load_session, save_session
 
-__all__ = ["Engine", "Photo", "error_json", "MAX_CLICKS", "MAX_RESTARTS_STUDIO"]
+__all__ = ["Engine", "Photo", "error_json", "MAX_CLICKS", "MAX_RESTARTS_STUDIO", "STALE_SOLVE"]
 
 MAX_CLICKS = 5000
 MAX_RESTARTS_STUDIO = 256
+STALE_SOLVE = (
+    "the clicks, unknowns or values were edited (or the model reloaded) while the solve ran: its "
+    "result is not used (nor saved, nor set on the sliders); solve again"
+)
+"""What the page says of a solve whose inputs changed before it finished."""
 _RENDER_LOCK = threading.Lock()
 IMAGE_TYPES = {".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg"}
 
@@ -196,7 +201,14 @@ class Engine:
         self.notes: list[str] = []
         self.session = Session()
         self.result: Any = None
-        self.solve_state: dict[str, Any] = {"running": False, "messages": [], "error": None, "done": False}
+        # "stale": what the page says when a solve finished after an edit (its result not used)
+        self.solve_state: dict[str, Any] = {
+            "running": False,
+            "messages": [],
+            "error": None,
+            "done": False,
+            "stale": None,
+        }
         self._next_id = 1
         model_name = str(self.model_path.resolve())
         for photo in self.photos.values():  # Save draws into out/overlays: never over a photo
@@ -772,7 +784,15 @@ class Engine:
             names = self._unknowns(model)
             data = self.measurements()
             start = self._start_values(model, names)
-            self.solve_state = {"running": True, "messages": [], "error": None, "done": False, "started": time.time()}
+            asked = self._solve_inputs()
+            self.solve_state = {
+                "running": True,
+                "messages": [],
+                "error": None,
+                "done": False,
+                "stale": None,
+                "started": time.time(),
+            }
 
         def say(message: str) -> None:
             self.solve_state["messages"].append(message)
@@ -783,6 +803,12 @@ class Engine:
                     model, data, names, restarts=restarts, seed=seed, initial=start or None, progress=say
                 )
                 with self.lock:
+                    if self.loaded is not loaded or self._solve_inputs() != asked:
+                        # Edited while it ran: its result is of other clicks (or unknowns, or start
+                        # values, or model), so it is neither saved beside these nor written over
+                        # the values the operator set meanwhile.
+                        self.solve_state["stale"] = STALE_SOLVE
+                        return
                     self.result = result
                     for k, v in result.values.items():
                         self.session.values[k] = float(v)
@@ -797,6 +823,14 @@ class Engine:
                 self.solve_state["done"] = True
 
         threading.Thread(target=work, name="mbcal-studio-solve", daemon=True).start()
+
+    def _solve_inputs(self) -> tuple:
+        """What a solve is of: the clicks, the unknowns and the values it starts from (a copy)."""
+        return (
+            [astuple(c) for c in self.session.clicks],
+            list(self.session.estimate),
+            dict(self.session.values),
+        )
 
     def solve_status(self) -> dict[str, Any]:
         with self.lock:

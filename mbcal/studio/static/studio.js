@@ -612,6 +612,7 @@ async function doSolve() {
   await saving;
   const restarts = Math.max(1, Math.min(256, Number($("#restarts").value) || 16));
   $("#solve").disabled = true;
+  $("#stale").hidden = true;
   try {
     await api("POST", "/api/solve", { restarts, seed: 0 });
     let st;
@@ -622,6 +623,14 @@ async function doSolve() {
       if (st.done) break;
     }
     if (st.error) { showError(st.error, true); status("solve failed"); return; }
+    if (st.stale) {
+      // Edited while it ran: the result is of other clicks; the page keeps the edits and their values.
+      $("#stale").textContent = st.stale;
+      $("#stale").hidden = false;
+      status("solve finished after an edit: its result is not used");
+      document.body.dataset.solved = "stale";
+      return;
+    }
     S.report = st.report;
     for (const p of S.report.params) S.values[p.name] = p.value;
     showReport(S.report);
