@@ -647,6 +647,42 @@ def test_a_solve_that_finishes_after_an_edit_is_stale_not_saved_and_keeps_the_ne
     assert engine.result is not None and set(engine.session.values) == {"block.x", "block.y"}
 
 
+def _flat_photo(path: Path, rgb: tuple[int, int, int], width: int = 320, height: int = 240) -> Path:
+    from PIL import Image
+
+    Image.new("RGB", (width, height), rgb).save(path)
+    return path
+
+
+def _median_colour(path: Path) -> list[float]:
+    from PIL import Image
+
+    with Image.open(path) as img:
+        return np.median(np.asarray(img.convert("RGB")).reshape(-1, 3), axis=0).tolist()
+
+
+def test_each_configurations_overlays_are_drawn_on_its_own_photo(small, tmp_path):
+    """One camera in two configurations, a red photo and a blue one: Save draws each
+    configuration's before/after overlays over its own photo, not every one over the last."""
+    model, _photo_path, out = small
+    red = _flat_photo(tmp_path / "red.png", (255, 0, 0))
+    blue = _flat_photo(tmp_path / "blue.png", (0, 0, 255))
+    engine = Engine(model, [], [("cam", "default", red), ("cam", "pose2", blue)], out)
+    clicks = BLOCK_CLICKS + [dict(c, id=f"p2{c['id']}", config="pose2", v=c["v"] + 1.0) for c in BLOCK_CLICKS]
+    engine.set_session(clicks, ["block.x", "block.y"], {}, [])
+    engine.start_solve(restarts=2)
+    assert _solved(engine)["error"] is None
+    written = engine.save("csv")["written"]
+    assert {w for w in written if w.startswith("overlays/")} == {
+        "overlays/cam_before.png", "overlays/cam_after.png",
+        "overlays/cam_pose2_before.png", "overlays/cam_pose2_after.png",
+    }  # fmt: skip
+    for name in ("cam_before", "cam_after"):
+        assert _median_colour(out / "overlays" / f"{name}.png") == [255, 0, 0], name
+    for name in ("cam_pose2_before", "cam_pose2_after"):
+        assert _median_colour(out / "overlays" / f"{name}.png") == [0, 0, 255], name
+
+
 def test_imported_ids_stay_unique_and_configuration_names_are_checked(small, tmp_path):
     model, photo, out = small
     clicks = tmp_path / "clicks.json"

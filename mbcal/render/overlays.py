@@ -32,6 +32,11 @@ AFTER = (20, 150, 60)
 MEASURED = (30, 80, 220)
 RESIDUAL = (230, 130, 0)
 
+Backgrounds = (
+    Mapping[str, np.ndarray] | Mapping[tuple[str, str], np.ndarray] | Mapping[str | tuple[str, str], np.ndarray]
+)
+"""Photos to draw over: by camera, or by (camera, configuration) (see :func:`calibration_overlays`)."""
+
 
 def _config_scene(scenes, config: int):
     """One configuration's scene of :meth:`Problem.whole_scenes` (every configuration at once)."""
@@ -68,7 +73,7 @@ def calibration_overlays(
     result,
     out_dir,
     *,
-    backgrounds: Mapping[str, np.ndarray] | None = None,
+    backgrounds: Backgrounds | None = None,
     cameras: list[str] | None = None,
     configurations: list[str] | None = None,
     vector_scale: float = 10.0,
@@ -82,15 +87,22 @@ def calibration_overlays(
     out_dir : path
         Folder for ``<camera>_<config>_before.png`` and ``..._after.png``.
     backgrounds : mapping
-        Camera name → the real image (H, W, 3).  Without one, the calibrated model's own
-        rendering is the background.
+        Camera name → the real image (H, W, 3), or (camera name, configuration) → the image that
+        camera took in that configuration (an arm in several attitudes: one photo each), which wins
+        over the camera's own.  Without one, the calibrated model's own rendering is the background.
     vector_scale : float
         The residuals after calibration are drawn this many times longer (they are small).
     """
     problem = result.problem
     model = problem.model
     out_dir = make_output_folder(out_dir)
-    backgrounds = {model.resolve("camera", k): v for k, v in (backgrounds or {}).items()}
+    by_camera: dict[str, np.ndarray] = {}
+    by_config: dict[tuple[str, str], np.ndarray] = {}
+    for key, image in (backgrounds or {}).items():
+        if isinstance(key, tuple):
+            by_config[(model.resolve("camera", key[0]), key[1])] = image
+        else:
+            by_camera[model.resolve("camera", key)] = image
     groups: dict[tuple[str, str], list] = {pair: [] for pair in _image_pairs(result.residuals)}
     for r in result.residuals:
         if r.kind == "image_point":
@@ -112,7 +124,7 @@ def calibration_overlays(
             c = configs.index(config)
             scene_before = _config_scene(whole_before, c)
             scene_after = _config_scene(whole_after, c)
-            background = backgrounds.get(camera)
+            background = by_config.get((camera, config), by_camera.get(camera))
             # The wireframes need depth only; the shaded pass is drawn only as a missing background.
             view_before = render_view(scene_before, camera, color=False)
             view_after = render_view(scene_after, camera, color=background is None)

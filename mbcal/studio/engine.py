@@ -906,9 +906,10 @@ class Engine:
         from mbcal.render.overlays import calibration_overlays  # rendering: loaded when pictures are made
         from mbcal.render.views import load_image  # as above
 
-        backgrounds = {}
+        # Each photo is of one camera in one configuration: drawn under that configuration's overlays only.
+        backgrounds: dict[tuple[str, str], np.ndarray] = {}
         for photo in self.photos.values():
-            backgrounds[model.resolve("camera", photo.camera)] = load_image(photo.path)
+            backgrounds[(model.resolve("camera", photo.camera), photo.config)] = load_image(photo.path)
         folder = self._target_path("overlays")
         try:
             with _RENDER_LOCK:
