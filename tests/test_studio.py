@@ -704,6 +704,70 @@ def test_imported_ids_stay_unique_and_configuration_names_are_checked(small, tmp
         Engine(model, [], [("cam", "pose/1", photo)], tmp_path / "out2")
 
 
+def test_imported_sigmas_of_u_and_v_are_kept_through_the_session_the_solve_and_save(small, tmp_path):
+    from mbcal.language import load_model
+    from mbcal.measurements.io import read_measurements
+
+    model, photo, out = small
+    given = tmp_path / "aniso.csv"
+    given.write_text(
+        "id,kind,config,camera,point,u,v,sigma_u,sigma_v\n"
+        "m1,image_point,default,cam,block.a,130,97,0.5,3.0\n"
+        "m2,image_point,default,cam,block.b,190,97,0.5,3.0\n"
+        "m3,image_point,default,cam,block.c,190,142,2.0,2.0\n",
+        encoding="utf-8",
+    )
+    engine = Engine(model, [given], [("cam", "default", photo)], out)
+    assert [(c.sigma, c.sigma_v) for c in engine.session.clicks] == [(0.5, 3.0), (0.5, 3.0), (2.0, None)]
+    saved = json.loads((out / SESSION_FILE).read_text())["clicks"]
+    assert saved[0]["sigma"] == 0.5 and saved[0]["sigma_v"] == 3.0 and "sigma_v" not in saved[2]
+    assert [list(m.sigma) for m in engine.measurements()] == [[0.5, 3.0], [0.5, 3.0], [2.0, 2.0]]  # the solve's
+    # The page sends the clicks back as it got them: the schema takes both σ.
+    srv = StudioServer(engine).start()
+    try:
+        c = _client(srv)
+        clicks = c.get(_base(srv) + "/api/state").json()["session"]["clicks"]
+        body = {"clicks": clicks, "estimate": ["block.x"], "values": {}}
+        assert c.post(_base(srv) + "/api/session", json=body, headers={"Origin": _base(srv), **POST}).status_code == 200
+    finally:
+        srv.stop()
+    assert engine.session.clicks[0].sigma_v == 3.0
+    restored = Engine(model, [given], [("cam", "default", photo)], out)
+    assert restored.session.clicks[1].sigma_v == 3.0
+    assert restored.require_model().warm.wait(timeout=120)  # its compiles done before the process ends
+    engine.save("csv")
+    written = read_measurements(out / "measurements.csv", load_model(model))
+    assert [list(m.sigma) for m in written] == [[0.5, 3.0], [0.5, 3.0], [2.0, 2.0]]
+    # A correlated covariance cannot be a click: refused at start, not silently made diagonal.
+    correlated = tmp_path / "cov.json"
+    correlated.write_text(json.dumps({"measurements": [{"id": "m1", "kind": "image_point", "camera": "cam",
+                          "point": "block.a", "u": 130, "v": 97, "cov": [[1, 0.5], [0.5, 1]]}]}))  # fmt: skip
+    with pytest.raises(MbcalError, match="image point 'm1' has a covariance with correlation"):
+        Engine(model, [correlated], [("cam", "default", photo)], tmp_path / "out2")
+
+
+@pytest.mark.slow
+def test_the_page_shows_both_sigmas_and_an_edit_sets_one_for_both(browser, small, tmp_path):
+    model, photo, out = small
+    given = tmp_path / "aniso.csv"
+    given.write_text(
+        "id,kind,camera,point,u,v,sigma_u,sigma_v\nm1,image_point,cam,block.a,130,97,0.5,3.0\n", encoding="utf-8"
+    )
+    srv = StudioServer(Engine(model, [given], [("cam", "default", photo)], out)).start()
+    try:
+        page = open_page(browser, srv.url)
+        assert page.input_value("input[data-sigma='m1']") == "0.5"
+        assert page.inner_text("span[data-sigma-v='m1']").strip() == "/ 3"
+        page.fill("input[data-sigma='m1']", "0.8")
+        page.press("input[data-sigma='m1']", "Enter")
+        saved = _session_when(out, lambda s: s["clicks"][0]["sigma"] == 0.8)["clicks"][0]
+        assert "sigma_v" not in saved
+        assert page.locator("span[data-sigma-v='m1']").count() == 0
+        page.close()
+    finally:
+        srv.stop()
+
+
 def test_a_session_that_cannot_be_written_changes_nothing_and_says_so(small, monkeypatch):
     import mbcal.studio.engine as studio_engine
 

@@ -231,6 +231,7 @@ class Engine:
         self.session.model = model_name
         self._next_id = self._max_id() + 1
         self.save_session()
+        self._start_warm_up()
 
     # ---- files ---------------------------------------------------------------------------------------
 
@@ -266,9 +267,15 @@ class Engine:
             self.loaded = _Loaded(model, inputs, scene_fn)
             self.error = None
             self.result = None
-        # Compile the projections while the browser opens the page (the first draw is then quick).
-        threading.Thread(target=self._warm_up, args=(self.loaded,), name="mbcal-studio-warm-up", daemon=True).start()
         return True
+
+    def _start_warm_up(self) -> None:
+        """Compile the projections while the browser opens the page (the first draw is then quick);
+        only once the studio has started (a refused start compiles nothing)."""
+        if self.loaded is not None and self.error is None:
+            warm_up = threading.Thread(target=self._warm_up, args=(self.loaded,), name="mbcal-studio-warm-up")
+            warm_up.daemon = True
+            warm_up.start()
 
     def _warm_up(self, loaded: _Loaded) -> None:
         try:
@@ -284,6 +291,7 @@ class Engine:
         ok = self.load()
         if ok:
             self._keep_valid_clicks("kept after reloading")
+            self._start_warm_up()
             self.save_session()
         return {"ok": ok, "error": self.error, "notes": self.notes}
 
@@ -307,6 +315,14 @@ class Engine:
         taken = {m.id for m in self.loaded.inputs}
         for m in self.loaded.inputs:
             if m.kind == "image_point" and m.value is not None:
+                if np.any(m.cov != np.diag(np.diag(m.cov))):  # a click holds σ of u and of v, no correlation
+                    raise MbcalError(
+                        f"image point '{m.id}' has a covariance with correlation ('cov'); the studio's clicks "
+                        "hold a σ of u and a σ of v only",
+                        span=m.where,
+                        hint="give sigma_u and sigma_v instead, or solve that file with mbcal solve",
+                    )
+                sigma_u, sigma_v = (float(s) for s in m.sigma)
                 cid = _UNSAFE_IN_NAMES.sub("_", m.id)  # ids travel in the page's requests: no slashes
                 if cid != m.id:  # cleaned: made unique again ('a/1' and 'a_1' are both in the file)
                     base, k = cid, 2
@@ -321,7 +337,8 @@ class Engine:
                         m.refs["point"],
                         float(m.value[0]),
                         float(m.value[1]),
-                        float(m.sigma[0]),
+                        sigma_u,
+                        None if sigma_v == sigma_u else sigma_v,
                     )
                 )
 
@@ -676,7 +693,9 @@ class Engine:
                 if c["id"] in seen:
                     raise MbcalError(f"duplicate click id '{c['id']}'")
                 seen.add(c["id"])
-                new.append(Click(c["id"], c["camera"], c["config"], c["point"], c["u"], c["v"], c["sigma"]))
+                new.append(
+                    Click(c["id"], c["camera"], c["config"], c["point"], c["u"], c["v"], c["sigma"], c.get("sigma_v"))
+                )
             for pattern in estimate:
                 if not model.match_params(pattern):
                     raise MbcalError(f"no parameter matches '{pattern}'")
@@ -715,7 +734,7 @@ class Engine:
                 "point": c.point,
                 "u": c.u,
                 "v": c.v,
-                "sigma": c.sigma,
+                **({"sigma": c.sigma} if c.sigma_v is None else {"sigma_u": c.sigma, "sigma_v": c.sigma_v}),
             }
             for c in self.session.clicks
         ]

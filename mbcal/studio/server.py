@@ -80,6 +80,7 @@ class ClickBody(_Strict):
     u: Annotated[float, Field(allow_inf_nan=False, ge=-1e6, le=1e6)]
     v: Annotated[float, Field(allow_inf_nan=False, ge=-1e6, le=1e6)]
     sigma: Annotated[float, Field(allow_inf_nan=False, gt=0, le=1e4)] = 1.0
+    sigma_v: Annotated[float, Field(allow_inf_nan=False, gt=0, le=1e4)] | None = None
 
 
 class SessionBody(_Strict):

@@ -1,6 +1,7 @@
 """The studio's session: what the operator did, saved to ``--out`` after every edit.
 
-A session holds the clicked correspondences (camera, configuration, model point, pixel, σ), the
+A session holds the clicked correspondences (camera, configuration, model point, pixel, σ — or
+σ of u and of v), the
 chosen unknowns and the coarse-alignment values.  It is written atomically to
 ``<out>/studio-session.json`` after every change, so a closed tab, a browser crash or a
 restarted studio loses nothing; :func:`load_session` reads it back.
@@ -33,7 +34,8 @@ class Click:
     point: str  # full point name
     u: float
     v: float
-    sigma: float = 1.0
+    sigma: float = 1.0  # px: of u and v, or of u alone when sigma_v is given
+    sigma_v: float | None = None  # px: of v when it differs from u's (from a measurement file's sigma_u, sigma_v)
 
 
 @dataclass
@@ -50,11 +52,18 @@ class Session:
         return {
             "format": SESSION_FORMAT,
             "model": self.model,
-            "clicks": [asdict(c) for c in self.clicks],
+            "clicks": [_click_json(c) for c in self.clicks],
             "estimate": list(self.estimate),
             "values": dict(self.values),
             "hidden": list(self.hidden),
         }
+
+
+def _click_json(click: Click) -> dict[str, Any]:
+    out = asdict(click)
+    if click.sigma_v is None:  # one σ of both: as sessions always held it
+        del out["sigma_v"]
+    return out
 
 
 def _finite(value: Any, what: str, path: Path) -> float:
@@ -91,6 +100,7 @@ def load_session(path: Path) -> Session | None:
                     u=_finite(c["u"], f"click {i + 1} u", path),
                     v=_finite(c["v"], f"click {i + 1} v", path),
                     sigma=_finite(c.get("sigma", 1.0), f"click {i + 1} sigma", path),
+                    sigma_v=None if c.get("sigma_v") is None else _finite(c["sigma_v"], f"click {i + 1} sigma_v", path),
                 )
             )
         except KeyError as err:

@@ -530,10 +530,16 @@ function renderClicks() {
     el("td", { text: c.v.toFixed(2) }, tr);
     const td = el("td", {}, tr);
     const inp = el("input", { type: "number", min: "0.01", step: "0.1", value: c.sigma, "data-sigma": c.id }, td);
+    if (c.sigma_v !== undefined) {
+      // From a measurement file's sigma_u, sigma_v: both kept; an edit sets one σ of both.
+      el("span", { class: "sigma-v", text: ` / ${c.sigma_v}`, title: "σ of u / σ of v; an edit sets both", "data-sigma-v": c.id }, td);
+    }
     inp.addEventListener("change", () => {
       const s = Number(inp.value);
       if (!(s > 0)) { inp.value = c.sigma; return; }
-      pushHistory(); c.sigma = s; saveSession();
+      pushHistory(); c.sigma = s;
+      if (c.sigma_v !== undefined) { delete c.sigma_v; renderClicks(); }
+      saveSession();
     });
     const res = S.report && S.report.residuals[c.id];
     el("td", { text: res ? Math.hypot(res.measured[0] - res.predicted[0], res.measured[1] - res.predicted[1]).toFixed(2) + " px" : "" }, tr);
