@@ -398,6 +398,7 @@ def test_bad_command_lines_get_a_clear_message_and_status_2(tmp_path):
         (["--image", f"eyes.left={tmp_path / 'missing.png'}"], "photo not found"),
         (["--out", str(root / "README.md")], "is a file"),
         (["missing.csv"], "file not found: missing.csv"),
+        (["--image", f"nocam={_photo(tmp_path / 'p.png')}"], "the model's cameras: robot.head.eyes.left"),
     ]
     for extra, message in cases:
         r = subprocess.run(
@@ -409,6 +410,38 @@ def test_bad_command_lines_get_a_clear_message_and_status_2(tmp_path):
         )
         assert r.returncode == 2, (extra, r.stderr)
         assert message in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+def _no_serving(monkeypatch) -> None:
+    """``mbcal studio`` in-process must be refused before it serves: serving fails the test, not hangs it."""
+    from mbcal.studio import server as studio_server
+
+    def serve(*_args, **_kwargs):
+        raise AssertionError("the studio started serving")
+
+    monkeypatch.setattr(studio_server, "serve_forever", serve)
+
+
+def test_a_camera_the_model_lacks_is_the_command_lines_error_at_start_and_the_models_on_reload(
+    small, capsys, monkeypatch
+):
+    from mbcal import cli
+
+    model, photo, out = small
+    _no_serving(monkeypatch)
+    assert cli.main(["studio", str(model), "--image", f"left={photo}", "--no-browser", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert f"--image left={photo}: the model has no camera named 'left' (the model's cameras: cam)" in err
+    assert "the model has an error" not in err
+    assert cli.main(["studio", str(model), "--image", f"cma@pose2={photo}", "--no-browser", "--out", str(out)]) == 2
+    assert "--image cma@pose2=" in (err := capsys.readouterr().err) and "did you mean 'cam'?" in err
+    # On a reload the camera is the model's to fix: shown in the page, the server goes on.
+    engine = Engine(model, [], [("cam", "default", photo)], out)
+    model.write_text(SMALL.replace("camera cam(", "camera eye("), encoding="utf-8")
+    r = engine.reload()
+    assert not r["ok"] and r["error"]["message"].startswith("--image cam=")
+    model.write_text(SMALL, encoding="utf-8")
+    assert engine.reload()["ok"]
 
 
 def test_the_page_ships_inside_the_package():

@@ -222,7 +222,7 @@ class Engine:
                 f"{self.session_path} holds a session of {restored.model}",
                 hint=f"give another --out for {self.model_path.name}, or move that session away",
             )
-        self.load()
+        self.load(start=True)
         if restored is not None:
             self.session = restored
             self._keep_valid_clicks("restored from " + str(self.session_path))
@@ -251,16 +251,25 @@ class Engine:
 
     # ---- the model -----------------------------------------------------------------------------------
 
-    def load(self) -> bool:
-        """(Re)load the model and the measurement files; on error keep the message for the page."""
+    def load(self, *, start: bool = False) -> bool:
+        """(Re)load the model and the measurement files; on error keep the message for the page.
+
+        A photo whose camera the model lacks is the model's error on a reload (the camera was
+        renamed: fix the model), but the command line's at ``start`` (a wrong ``--image``): raised.
+        """
         with self.lock:
             try:
                 model = load_model(self.model_path)
                 sets = [read_measurements(p, model) for p in self.measurement_paths]
                 inputs = merge_measurements(sets, model) if sets else None
-                for photo in self.photos.values():
-                    model.resolve("camera", photo.camera)
             except MbcalError as err:
+                self.error = error_json(err)
+                return False
+            try:
+                self._check_photo_cameras(model)
+            except MbcalError as err:
+                if start:
+                    raise
                 self.error = error_json(err)
                 return False
             scene_fn = jax.jit(lambda X: modeler(model, X))
@@ -268,6 +277,14 @@ class Engine:
             self.error = None
             self.result = None
         return True
+
+    def _check_photo_cameras(self, model: Model) -> None:
+        for photo in self.photos.values():
+            try:
+                model.resolve("camera", photo.camera)
+            except MbcalError as err:  # named as given on the command line
+                given = photo.camera + ("" if photo.config == "default" else f"@{photo.config}")
+                raise MbcalError(f"--image {given}={photo.path}: {err.message}", hint=err.hint) from None
 
     def _start_warm_up(self) -> None:
         """Compile the projections while the browser opens the page (the first draw is then quick);
