@@ -230,7 +230,13 @@ def all_or_nothing() -> Iterator[None]:
     over their targets when the block ends without an exception (Ctrl-C held off meanwhile, where
     it can be): a command interrupted half-way — while its overlays are drawn, after its report —
     leaves none of its outputs, not some.  Not for work whose files must appear as it goes (the
-    model manager, the studio's Save), nor for a block that reads back what it wrote."""
+    model manager, the studio as a whole: each of its Saves is one block), nor for a block that
+    reads back what it wrote.
+
+    A block inside another one is a part that may fail alone (the studio's overlays: a Save
+    without them still writes the rest): when it fails, its own files and folders are dropped;
+    when it succeeds, they join the enclosing block's, renamed (or dropped) with them."""
+    outer_pending, outer_made = _PENDING.get(), _MADE.get()
     pending: list[tuple[str, Path]] = []
     made: list[Path] = []
     token, made_token = _PENDING.set(pending), _MADE.set(made)
@@ -247,6 +253,10 @@ def all_or_nothing() -> Iterator[None]:
     finally:
         _PENDING.reset(token)
         _MADE.reset(made_token)
+    if outer_pending is not None and outer_made is not None:
+        outer_pending.extend(pending)
+        outer_made[:0] = made  # made inside the enclosing block's folders: removed before them
+        return
     with _interrupts_held():
         for k, (tmp, target) in enumerate(pending):
             try:

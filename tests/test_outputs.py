@@ -114,6 +114,26 @@ def test_outputs_written_together_appear_together_or_not_at_all(tmp_path):
     assert (tmp_path / "c.txt").read_text() == "c"
 
 
+def test_a_block_inside_another_fails_alone_and_else_appears_with_the_enclosing_ones_files(tmp_path):
+    from mbcal.outputs import all_or_nothing, make_output_folder
+
+    with all_or_nothing():
+        atomic_write(tmp_path / "a.txt", "a")
+        with pytest.raises(OSError), all_or_nothing():  # a part that fails: its files and folder go
+            atomic_write(make_output_folder(tmp_path / "part") / "p.txt", "p")
+            raise OSError("drawing failed")
+        assert not (tmp_path / "part").exists()
+        with all_or_nothing():  # a part that succeeds: held back until the enclosing block ends
+            atomic_write(make_output_folder(tmp_path / "ok") / "q.txt", "q")
+        assert not (tmp_path / "ok" / "q.txt").exists() and not (tmp_path / "a.txt").exists()
+    assert (tmp_path / "a.txt").read_text() == "a" and (tmp_path / "ok" / "q.txt").read_text() == "q"
+    with pytest.raises(KeyboardInterrupt), all_or_nothing():  # the enclosing block fails: the part goes too
+        with all_or_nothing():
+            atomic_write(make_output_folder(tmp_path / "late") / "r.txt", "r")
+        raise KeyboardInterrupt
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt", "ok"]
+
+
 def test_a_solve_interrupted_while_drawing_its_overlays_leaves_none_of_its_outputs(tmp_path, monkeypatch, capsys):
     """Ctrl-C while the overlays were drawn left some overlays (and, had they come first, the
     report and the model): the command's outputs now appear together or not at all."""

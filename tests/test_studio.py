@@ -716,6 +716,66 @@ def test_each_configurations_overlays_are_drawn_on_its_own_photo(small, tmp_path
         assert _median_colour(out / "overlays" / f"{name}.png") == [0, 0, 255], name
 
 
+def test_save_checks_every_file_before_writing_any(small, tmp_path):
+    model, photo, out = small
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    engine = Engine(model, [], [("cam", "default", photo)], out)
+    engine.set_session(BLOCK_CLICKS, ["block.x", "block.y"], {}, [])
+    engine.start_solve(restarts=2)
+    assert _solved(engine)["error"] is None
+    (out / "report.json").symlink_to(elsewhere / "report.json")
+    with pytest.raises(MbcalError, match="writes only under --out"):
+        engine.save("json")
+    assert sorted(p.name for p in out.iterdir()) == ["report.json", SESSION_FILE]  # nothing written
+    assert list(elsewhere.iterdir()) == []
+    (out / "report.json").unlink()
+    (out / "overlays").mkdir()
+    (out / "overlays" / "cam_after.png").symlink_to(elsewhere / "cam_after.png")
+    with pytest.raises(MbcalError, match="writes only under --out"):
+        engine.save("json")
+    assert sorted(p.name for p in out.iterdir()) == ["overlays", SESSION_FILE]
+    (out / "overlays" / "cam_after.png").unlink()
+    assert engine.save("json")["written"][:3] == ["measurements.json", "small_calibrated.mdl", "report.json"]
+
+
+def test_a_save_removes_the_overlays_an_earlier_save_drew_and_this_one_does_not(small, tmp_path, monkeypatch):
+    import mbcal.render.overlays as overlays
+
+    model, photo, out = small
+    engine = Engine(model, [], [("cam", "default", photo), ("cam", "pose2", _photo(tmp_path / "p2.png"))], out)
+    both = BLOCK_CLICKS + [dict(c, id=f"p2{c['id']}", config="pose2") for c in BLOCK_CLICKS]
+    engine.set_session(both, ["block.x", "block.y"], {}, [])
+    engine.start_solve(restarts=2)
+    assert _solved(engine)["error"] is None
+    engine.save("csv")
+    mine = _photo(out / "overlays" / "mine_after.png")  # the operator's own file: never the studio's to remove
+    engine.set_session(BLOCK_CLICKS, ["block.x", "block.y"], {}, [])  # pose2's clicks deleted
+    engine.start_solve(restarts=2)
+    assert _solved(engine)["error"] is None
+    saved = engine.save("csv")
+    assert sorted(p.name for p in (out / "overlays").iterdir() if not p.name.startswith(".")) == [
+        "cam_after.png", "cam_before.png", mine.name
+    ]  # fmt: skip
+    assert saved["removed"] == ["overlays/cam_pose2_after.png", "overlays/cam_pose2_before.png"]
+    # The overlays fail half-way: none of this Save's is kept, the earlier ones (of another solve) go,
+    # and the measurements, the model and the report are still saved.
+    drawn = overlays.calibration_overlays
+
+    def half(result, folder, **kwargs):
+        drawn(result, folder, **kwargs)
+        raise MbcalError("no OpenGL context")
+
+    monkeypatch.setattr(overlays, "calibration_overlays", half)
+    (out / "report.json").unlink()
+    saved = engine.save("csv")
+    assert saved["written"] == ["measurements.csv", "small_calibrated.mdl", "report.json"]
+    assert saved["removed"] == ["overlays/cam_after.png", "overlays/cam_before.png"]
+    assert "overlays not drawn: no OpenGL context" in engine.notes
+    assert (out / "report.json").is_file() and not (out / "overlays" / "cam_after.png").exists()
+    assert mine.exists() and not list((out / "overlays").glob(".*.part"))
+
+
 def test_imported_ids_stay_unique_and_configuration_names_are_checked(small, tmp_path):
     model, photo, out = small
     clicks = tmp_path / "clicks.json"

@@ -12,6 +12,7 @@ the ``--out`` folder with a fixed name.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import re
@@ -35,7 +36,7 @@ from mbcal.language.model import Model
 from mbcal.measurements.io import read_measurements, write_measurements
 from mbcal.measurements.sets import MeasurementSet, measurements_from_records, merge_measurements
 from mbcal.modeling import modeler
-from mbcal.outputs import atomic_write, check_output
+from mbcal.outputs import all_or_nothing, atomic_write, check_output
 from mbcal.studio.session import SESSION_FILE, Click, Session, load_session, save_session
 
 __all__ = ["Engine", "Photo", "error_json", "MAX_CLICKS", "MAX_RESTARTS_STUDIO", "STALE_SOLVE"]
@@ -47,6 +48,9 @@ STALE_SOLVE = (
     "result is not used (nor saved, nor set on the sliders); solve again"
 )
 """What the page says of a solve whose inputs changed before it finished."""
+OVERLAYS_MANIFEST = ".studio-overlays.json"
+"""In ``--out/overlays``: the pictures the last Save drew (the next one removes those it does not redraw)."""
+_OVERLAY_NAME = re.compile(r"[A-Za-z0-9_-]+_(before|after)\.png")
 _RENDER_LOCK = threading.Lock()
 IMAGE_TYPES = {".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg"}
 
@@ -195,6 +199,7 @@ class Engine:
                 raise MbcalError(f"cannot read photo {p}: {err}") from None
             self.photos[f"p{i}"] = Photo(f"p{i}", camera, config, p, width, height)
         self.lock = threading.RLock()
+        self._save_lock = threading.Lock()  # one Save at a time: each reads what the last one drew
         self._edges_lock = threading.Lock()
         self.loaded: _Loaded | None = None
         self.error: dict[str, Any] | None = None
@@ -905,7 +910,16 @@ class Engine:
         }
 
     def save(self, fmt: str = "csv") -> dict[str, Any]:
-        """Write the measurements, the calibrated model, the report and the overlays into ``--out``."""
+        """Write the measurements, the calibrated model, the report and the overlays into ``--out``.
+
+        All or nothing: every target is checked before any is written, and they are renamed into
+        place together (:func:`mbcal.outputs.all_or_nothing`) -- a refused or failed Save leaves
+        the earlier files as they were.  Overlays an earlier Save drew that this one does not
+        (a camera or configuration without clicks now) are removed: none is left beside a report
+        it does not belong to.  The overlays alone may fail (said in the notes): the rest is saved.
+        """
+        from mbcal.render.overlays import planned_overlays  # rendering: loaded when pictures are made
+
         if fmt not in ("csv", "json"):
             raise MbcalError("format must be csv or json")
         with self.lock:
@@ -913,23 +927,44 @@ class Engine:
             data = self.measurements()
             result = self.result
             inputs = self.inputs
-        written = []
-        meas = self._target(f"measurements.{fmt}", inputs)
-        write_measurements(data, meas)
-        written.append(meas.name)
-        if result is not None:
+        with self._save_lock:
+            meas = self._target(f"measurements.{fmt}", inputs)
+            if result is None:
+                with all_or_nothing():
+                    write_measurements(data, meas)
+                return {"written": [meas.name], "removed": [], "out": str(self.out), "notes": list(self.notes)}
             suffix = ".urdf" if self.model_path.suffix.lower() == ".urdf" else ".mdl"
             model_out = self._target(f"{self.model_path.stem}_calibrated{suffix}", inputs)
-            result.write_model(model_out)
             report = self._target("report.json", inputs)
-            atomic_write(report, json.dumps(result.to_json(), indent=1, allow_nan=False) + "\n")
-            written += [model_out.name, report.name]
-            written += self._overlays(loaded.model, result)
-        return {"written": written, "out": str(self.out)}
+            folder = self._target_path("overlays")
+            if folder.exists() and not folder.is_dir():
+                raise MbcalError(f"{folder} is a file: Save draws its overlays into a folder of that name")
+            for picture in planned_overlays(loaded.model, result.residuals, folder):
+                self._target(f"overlays/{picture.name}", inputs)
+            manifest = self._target(f"overlays/{OVERLAYS_MANIFEST}", inputs)
+            earlier = self._studio_overlays(manifest)
+            with all_or_nothing():
+                write_measurements(data, meas)
+                result.write_model(model_out)
+                atomic_write(report, json.dumps(result.to_json(), indent=1, allow_nan=False) + "\n")
+                drawn = self._overlays(loaded.model, result, folder)
+                if drawn or folder.is_dir():
+                    atomic_write(manifest, json.dumps(drawn, indent=1) + "\n")
+            removed = []
+            for name in sorted(set(earlier) - set(drawn)):
+                stale = folder / name
+                if stale.is_file() and not stale.is_symlink() and stale.resolve() not in {p.resolve() for p in inputs}:
+                    with contextlib.suppress(OSError):
+                        stale.unlink()
+                        removed.append(f"overlays/{name}")
+        written = [meas.name, model_out.name, report.name, *(f"overlays/{name}" for name in drawn)]
+        return {"written": written, "removed": removed, "out": str(self.out), "notes": list(self.notes)}
 
     def _target(self, name: str, inputs: Sequence[Path]) -> Path:
         """An output of Save: under ``--out`` itself, not through a link to elsewhere, not an input."""
         path = self._target_path(name)
+        if not path.parent.exists():  # overlays/ on the first Save: made when they are drawn
+            return path
         return check_output(path, inputs)
 
     def _target_path(self, name: str) -> Path:
@@ -938,7 +973,20 @@ class Engine:
             raise MbcalError(f"{path} leads outside {self.out} (a link): the studio writes only under --out")
         return path
 
-    def _overlays(self, model: Model, result) -> list[str]:
+    @staticmethod
+    def _studio_overlays(manifest: Path) -> list[str]:
+        """The overlays the last Save drew (their names, as it recorded them in ``manifest``)."""
+        try:
+            names = json.loads(manifest.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+            return []
+        if not isinstance(names, list):
+            return []
+        # Only plain names of pictures in the folder: a hand-edited list cannot point elsewhere.
+        return [n for n in names if isinstance(n, str) and _OVERLAY_NAME.fullmatch(n)]
+
+    def _overlays(self, model: Model, result, folder: Path) -> list[str]:
+        """Draw the overlays into ``folder``: their names, or none (said in the notes) when they fail."""
         from mbcal.render.overlays import calibration_overlays  # rendering: loaded when pictures are made
         from mbcal.render.views import load_image  # as above
 
@@ -946,14 +994,13 @@ class Engine:
         backgrounds: dict[tuple[str, str], np.ndarray] = {}
         for photo in self.photos.values():
             backgrounds[(model.resolve("camera", photo.camera), photo.config)] = load_image(photo.path)
-        folder = self._target_path("overlays")
         try:
-            with _RENDER_LOCK:
+            with _RENDER_LOCK, all_or_nothing():  # failed: none of them (the rest of the Save stands)
                 paths = calibration_overlays(result, folder, backgrounds=backgrounds)
         except MbcalError as err:
             self.notes.append(f"overlays not drawn: {err}")
             return []
-        return [f"overlays/{p.name}" for p in paths]
+        return [p.name for p in paths]
 
 
 def _inside(path: Path, folder: Path) -> bool:

@@ -668,7 +668,9 @@ function showReport(rep) {
 async function doSave() {
   await saving;
   const r = await api("POST", "/api/save", { format: $("#format").value });
-  status("wrote " + r.written.join(", ") + " in " + r.out);
+  const removed = r.removed.length ? `; removed ${r.removed.join(", ")} (an earlier save's, not redrawn)` : "";
+  status("wrote " + r.written.join(", ") + " in " + r.out + removed);
+  $("#notes").textContent = r.notes.join(" · ");  // overlays that could not be drawn say why
   document.body.dataset.saved = r.written.join(",");
 }
 
