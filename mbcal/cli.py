@@ -795,8 +795,9 @@ def cmd_studio(args: argparse.Namespace) -> int:
         print(f"mbcal studio: {MISSING_EXTRA}", file=sys.stderr)
         return EXIT_BAD_INPUT
     from mbcal.studio.engine import Engine  # lazy: keeps JAX out of 'mbcal check'
-    from mbcal.studio.server import serve_forever  # lazy: the optional web server
+    from mbcal.studio.server import check_address, serve_forever  # lazy: the optional web server
 
+    check_address(args.host, args.port)  # refused before a warning or a folder
     photos = []
     for item in args.image or []:
         if "=" not in item:
@@ -804,6 +805,10 @@ def cmd_studio(args: argparse.Namespace) -> int:
         cam, path = item.split("=", 1)
         cam, _, config = cam.partition("@")
         photos.append((cam, config or "default", path))
+    for path in [args.model, *args.measurements]:
+        if not Path(path).is_file():
+            raise MbcalError(f"file not found: {path}")
+    engine = Engine(args.model, args.measurements, photos, args.out)  # makes --out only once all is valid
     if args.host not in ("127.0.0.1", "localhost", "::1"):
         print(
             f"mbcal studio: warning: listening on {args.host}, not only this machine; anyone who can reach it "
@@ -811,10 +816,6 @@ def cmd_studio(args: argparse.Namespace) -> int:
             "token travel unencrypted (plain HTTP)",
             file=sys.stderr,
         )
-    for path in [args.model, *args.measurements]:
-        if not Path(path).is_file():
-            raise MbcalError(f"file not found: {path}")
-    engine = Engine(args.model, args.measurements, photos, args.out)
     if engine.error:
         print(f"mbcal studio: the model has an error (shown in the page too):\n{engine.error['text']}", file=sys.stderr)
     end_start_up()  # a server waits: collections resume now, not at its first solve (mbcal._collector)

@@ -416,7 +416,8 @@ def _no_serving(monkeypatch) -> None:
     """``mbcal studio`` in-process must be refused before it serves: serving fails the test, not hangs it."""
     from mbcal.studio import server as studio_server
 
-    def serve(*_args, **_kwargs):
+    def serve(engine, host, port, **_kwargs):
+        StudioServer(engine, host, port).sock.close()  # its refusals, as the real one
         raise AssertionError("the studio started serving")
 
     monkeypatch.setattr(studio_server, "serve_forever", serve)
@@ -558,6 +559,33 @@ def test_wildcard_hosts_and_ports_out_of_range_are_refused_before_anything_is_wr
     )
     assert r.returncode == 2 and "--port: expected a port from 0" in r.stderr and "Traceback" not in r.stderr
     assert not (tmp_path / "o").exists()
+
+
+def test_a_refused_start_says_only_why_and_leaves_no_folder(small, tmp_path, capsys, monkeypatch):
+    import mbcal.studio.engine as studio_engine
+    from mbcal import cli
+
+    model, photo, _out = small
+    _no_serving(monkeypatch)
+    out = tmp_path / "a" / "b" / "out"
+    for extra, message in [
+        (["--host", "0.0.0.0", "--image", f"cam={photo}"], "--host 0.0.0.0 listens on every address"),
+        (["--image", f"cam={tmp_path / 'nothere.png'}"], "photo not found"),
+        (["--image", f"left={photo}"], "--image left="),
+    ]:
+        assert cli.main(["studio", str(model), *extra, "--no-browser", "--out", str(out)]) == 2, extra
+        err = capsys.readouterr().err
+        assert message in err and "warning" not in err, (extra, err)  # refused: no warning about the host first
+        assert not (tmp_path / "a").exists(), extra
+
+    # The session cannot be written (a full disk): the folders made for it are removed again.
+    def full(*_args):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(studio_engine, "save_session", full)
+    with pytest.raises(MbcalError, match="cannot save the session"):
+        Engine(model, [], [("cam", "default", photo)], out)
+    assert not (tmp_path / "a").exists()
 
 
 def test_save_writes_only_under_out_and_never_over_a_photo(small, tmp_path):

@@ -36,7 +36,7 @@ from mbcal.language.model import Model
 from mbcal.measurements.io import read_measurements, write_measurements
 from mbcal.measurements.sets import MeasurementSet, measurements_from_records, merge_measurements
 from mbcal.modeling import modeler
-from mbcal.outputs import all_or_nothing, atomic_write, check_output
+from mbcal.outputs import all_or_nothing, atomic_write, check_output, check_output_folder, make_output_folder
 from mbcal.studio.session import SESSION_FILE, Click, Session, load_session, save_session
 
 __all__ = ["Engine", "Photo", "error_json", "MAX_CLICKS", "MAX_RESTARTS_STUDIO", "STALE_SOLVE"]
@@ -177,10 +177,8 @@ class Engine:
     ):
         self.model_path = Path(model_path)
         self.measurement_paths = [Path(p) for p in measurement_paths]
-        self.out = Path(out)
-        if self.out.exists() and not self.out.is_dir():
-            raise MbcalError(f"{self.out} is a file; --out names a folder")
-        self.out.mkdir(parents=True, exist_ok=True)
+        # --out is made last, once everything else is valid: a refused start leaves no folder.
+        self.out = check_output_folder(out, "--out")
         self.photos: dict[str, Photo] = {}
         for i, (camera, config, path) in enumerate(photos):
             if not config or _UNSAFE_IN_NAMES.search(config):
@@ -235,7 +233,9 @@ class Engine:
             self._clicks_from_inputs()
         self.session.model = model_name
         self._next_id = self._max_id() + 1
-        self.save_session()
+        with all_or_nothing():  # the folders made are removed again if the session cannot be written
+            make_output_folder(self.out)
+            self.save_session()
         self._start_warm_up()
 
     # ---- files ---------------------------------------------------------------------------------------

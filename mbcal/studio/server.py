@@ -41,10 +41,10 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from mbcal.errors import MbcalError
 from mbcal.studio.engine import MAX_CLICKS, MAX_RESTARTS_STUDIO, Engine, error_json
 
-__all__ = ["create_app", "StudioServer", "MAX_BODY", "TOKEN_HEADER"]
+__all__ = ["check_address", "create_app", "StudioServer", "MAX_BODY", "TOKEN_HEADER"]
 
 WILDCARDS = ("0.0.0.0", "::", "[::]", "")
-"""Addresses that listen everywhere: refused (see :class:`StudioServer`)."""
+"""Addresses that listen everywhere: refused (see :func:`check_address`)."""
 
 MAX_BODY = 2 * 1024 * 1024
 _POOL = ThreadPoolExecutor(max_workers=4, thread_name_prefix="mbcal-studio-camera")
@@ -258,18 +258,24 @@ def create_app(engine: Engine, token: str, hosts: list[str]) -> FastAPI:
     return app
 
 
+def check_address(host: str, port: int = 0) -> None:
+    """Refuse an address the studio cannot serve on: called by ``mbcal studio`` before anything
+    else (no warning about a host, no folder made, for an address that is refused anyway)."""
+    if not 0 <= port <= 65535:
+        raise MbcalError(f"--port must be 0 (any free port) to 65535, got {port}")
+    if host in WILDCARDS:
+        raise MbcalError(
+            f"--host {host} listens on every address but answers to one Host name, so a browser "
+            "elsewhere could not use it: name the address to listen on (this machine's, as the "
+            "other machine reaches it)"
+        )
+
+
 class StudioServer:
     """The studio served on a socket: ``run()`` blocks; ``start()`` runs it in a thread (tests)."""
 
     def __init__(self, engine: Engine, host: str = "127.0.0.1", port: int = 0):
-        if not 0 <= port <= 65535:
-            raise MbcalError(f"--port must be 0 (any free port) to 65535, got {port}")
-        if host in WILDCARDS:
-            raise MbcalError(
-                f"--host {host} listens on every address but answers to one Host name, so a browser "
-                "elsewhere could not use it: name the address to listen on (this machine's, as the "
-                "other machine reaches it)"
-            )
+        check_address(host, port)
         family = socket.AF_INET6 if ":" in host else socket.AF_INET
         self.sock = socket.socket(family, socket.SOCK_STREAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
