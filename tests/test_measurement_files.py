@@ -191,6 +191,18 @@ CSV_ERRORS = {
         "m.csv:2:1: row has 6 fields but the header has 5",
         None,
     ),
+    # a row with too few cells was padded: a value shifted into another column, a σ left off read
+    # as the default
+    "too_few_fields": (
+        "kind,camera,point,u,v,sigma\nimage_point,left,lever.tip,70.9,0.5\n",
+        "m.csv:2:1: row has 5 fields but the header has 6",
+        "an empty cell (',,') leaves a value out",
+    ),
+    "trailing_sigma_left_off": (
+        "kind,camera,point,u,v,sigma\nimage_point,left,lever.tip,1,2,0.5\nimage_point,left,lever.hub,3,4\n",
+        "m.csv:3:1: row has 5 fields but the header has 6",
+        None,
+    ),
     "missing_role": (
         "kind,point,u,v\nimage_point,lever.tip,1,2\n",
         "m.csv:2:1: 'image_point' needs 'camera' (a camera name)",

@@ -179,7 +179,15 @@ def _read_csv(handle, path: str, builder: SetBuilder) -> None:
             extra = [c for c in row[len(header) :] if c.strip()]
             if extra:
                 raise MeasurementFileError(f"row has {len(row)} fields but the header has {len(header)}", where)
-        record = {h: (row[i].strip() if i < len(row) else "") for i, h in enumerate(header) if h}
+        if len(row) < len(header):
+            # Padding would read what is there as other columns' values (a σ left off, or a
+            # value shifted into the σ column): every cell up to the last column is written.
+            raise MeasurementFileError(
+                f"row has {len(row)} fields but the header has {len(header)}",
+                where,
+                hint="write every cell up to the header's last column; an empty cell (',,') leaves a value out",
+            )
+        record = {h: row[i].strip() for i, h in enumerate(header) if h}
         if record.get("kind", "").lower() == "known":
             unit = record.get("unit") or None
             unit_where = where
