@@ -19,6 +19,7 @@ from mbcal.workflows.cameras import (
     pose_from_homography,
     simulate_views,
     synthesize_images,
+    zhang_start,
 )
 from mbcal.workflows.detect import detect_images
 
@@ -170,6 +171,45 @@ def test_corners_detected_in_zhangs_images_calibrate_the_camera(tmp_path):
         assert cam[key]["std"] is not None and cam[key]["std"] > 0
     assert result["rms_reprojection"] < 0.5 and len(result["views"]) == 5
     assert len(list((tmp_path / "reprojection").glob("*.png"))) == 5
+
+
+def test_a_view_whose_corners_give_no_homography_is_left_out_of_zhangs_start_and_named():
+    """One view's corners on one row of the board (collinear) crashed the closed form with a
+    traceback (SVD did not converge, after divide-by-zero warnings); a view of 3 corners was left
+    out in silence.  Both are left out of the start and named; the solve then names the rotation
+    about the row as unobservable."""
+    import warnings
+
+    from mbcal.problem import Problem
+    from mbcal.workflows.cameras import default_unknowns
+
+    model = mbcal.load_model(MODELS / "camera_calibration.mdl")
+    data, _ = simulate_views(model, 6, {"cam.fx": 810.0}, seed=1, sigma=0.3)
+    three = ("board.r0c0", "board.r3c4", "board.r5c8")
+    keep = np.array(
+        [
+            (m.config != "view03" or m.refs["point"].startswith("board.r0c"))
+            and (m.config != "view05" or m.refs["point"] in three)
+            for m in data
+        ]
+    )
+    data = data.subset(keep)
+    names = Problem(model, data, default_unknowns(model, data)).params.names
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no RuntimeWarning either
+        values, notes = zhang_start(model, data, names)
+    assert notes == [
+        "view03 (camera cam): its 9 points lie on one line on the target (no homography); Zhang's start left it "
+        "out: the pose of 'board' there starts at the model's nominal values",
+        "view05 (camera cam): only 3 point(s) of the target (a homography needs 4); Zhang's start left it out: "
+        "the pose of 'board' there starts at the model's nominal values",
+    ]
+    assert values["cam.fx"] == pytest.approx(810.0, rel=0.01) and "board.x@view02" in values
+    assert not any(name.endswith(("@view03", "@view05")) for name in values)
+    cc = calibrate_cameras(model, data)
+    assert [c.names for c in cc.result.observability.unobservable] == [["board.roll@view03"]]
+    assert not cc.ok and cc.notes == notes and cc.to_json()["notes"] == notes
+    assert cc.summary().splitlines()[1:3] == [f"note: {note}" for note in notes]
 
 
 def test_closed_form_recovers_an_exact_camera():

@@ -52,6 +52,7 @@ __all__ = [
     "pose_from_homography",
     "rpy_from_matrix",
     "initial_values",
+    "zhang_start",
     "calibrate_cameras",
     "CameraCalibration",
     "plan_views",
@@ -120,6 +121,26 @@ def homographies(src: np.ndarray, dst: np.ndarray, mask: np.ndarray | None = Non
     return H / H[:, 2:3, 2:3]
 
 
+SPAN_TOLERANCE = 1e-9
+"""A view's points span their plane when the smaller principal axis of their scatter is more than
+this fraction of the larger (points on a target are exact, their pixels measured to ~10⁻³ of the
+image): below, they lie on a line and give no homography."""
+
+
+def _spans_plane(p: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Per view (V,) of padded points (V, L, 2): whether the real points span the plane (not all
+    on one line, not all at one place); a non-finite point never does."""
+    count = np.maximum(mask.sum(axis=1), 1)
+    q = np.where(mask[..., None], p, 0.0)
+    mean = q.sum(axis=1) / count[:, None]
+    d = np.where(mask[..., None], q - mean[:, None, :], 0.0)
+    scatter = np.einsum("vli,vlj->vij", d, d) / count[:, None, None]
+    with np.errstate(invalid="ignore", over="ignore"):
+        small, large = np.linalg.eigvalsh(np.nan_to_num(scatter, nan=0.0, posinf=0.0, neginf=0.0)).T
+        spans = small > SPAN_TOLERANCE**2 * large
+    return spans & np.all(np.isfinite(q), axis=(1, 2))
+
+
 def homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """H (3, 3) with dst ~ H·src for (n ≥ 4, 2) point sets (normalised DLT, Hartley's scaling)."""
     src, dst = np.asarray(src, float), np.asarray(dst, float)
@@ -147,6 +168,8 @@ def _v(H: np.ndarray, i: int, j: int) -> np.ndarray:
 def intrinsics_from_homographies(Hs: Sequence[np.ndarray] | np.ndarray, *, skew: bool = True) -> np.ndarray:
     """The camera matrix K from ≥ 3 plane homographies (≥ 2 with ``skew=False``)."""
     H = np.asarray(Hs, dtype=float).reshape(-1, 3, 3)
+    if not np.all(np.isfinite(H)):
+        raise MbcalError("the camera matrix needs finite homographies")
     rows = np.stack([_v(H, 0, 1), _v(H, 0, 0) - _v(H, 1, 1)], axis=1).reshape(-1, 6)
     if not skew:
         rows = np.vstack([rows, [0, 1, 0, 0, 0, 0]])  # B12 = 0  ⇔  γ = 0
@@ -338,8 +361,16 @@ def initial_values(model: Model, data: MeasurementSet, unknown: Sequence[str]) -
     Returns ``{unknown name: value}`` for the unknowns it can initialise; the rest keep their
     nominal values.  ``unknown`` are the expanded unknown names (``board.x@view3``).  Vectorised
     over the views (issue 15): each point's position is evaluated once, the homographies of all
-    views come from one stacked SVD, the poses from batched products.
+    views come from one stacked SVD, the poses from batched products.  A view whose points give no
+    homography (fewer than 4, all on one line, not finite) is left out: its target's pose keeps
+    its nominal value unless another camera saw it (:func:`zhang_start` says which).
     """
+    return zhang_start(model, data, unknown)[0]
+
+
+def zhang_start(model: Model, data: MeasurementSet, unknown: Sequence[str]) -> tuple[dict[str, float], list[str]]:
+    """:func:`initial_values`, and a note for each view left out whose target's estimated pose
+    therefore starts at its nominal value (the view, the camera, why)."""
     unknown_set = set(unknown)
     X0 = model.nominal
     frame_poses0 = _nominal(model).frame_poses
@@ -347,18 +378,43 @@ def initial_values(model: Model, data: MeasurementSet, unknown: Sequence[str]) -
     obs = _PlanarPoints(model, data)
     cameras = sorted({int(c) for c in obs.keys[:, 0]})
     poses: dict[tuple[int, int, int], np.ndarray] = {}  # T_camera_target per (camera, config, frame)
+    left_out: dict[int, str] = {}  # group → why it gives no homography
     for ci in cameras:
-        groups = np.nonzero((obs.keys[:, 0] == ci) & (obs.count >= 4))[0]
+        mine = obs.keys[:, 0] == ci
+        for g in np.nonzero(mine & (obs.count < 4))[0].tolist():
+            left_out[g] = f"only {obs.count[g]} point(s) of the target (a homography needs 4)"
+        groups = np.nonzero(mine & (obs.count >= 4))[0]
         if not len(groups):
             continue
-        Hs = homographies(*obs.padded(groups))
+        src, dst, mask = obs.padded(groups)
+        on_target, in_image = _spans_plane(src, mask), _spans_plane(dst, mask)
+        for g, a, b in zip(groups.tolist(), on_target.tolist(), in_image.tolist()):
+            if not (a and b):
+                where = "on the target" if not a else "in the image"
+                left_out[g] = f"its {obs.count[g]} points lie on one line {where} (no homography)"
+        usable = on_target & in_image
+        groups, src, dst, mask = groups[usable], src[usable], dst[usable], mask[usable]
+        if not len(groups):
+            continue
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # a non-finite one is left out
+            Hs = homographies(src, dst, mask)
+        finite = np.all(np.isfinite(Hs), axis=(1, 2))
+        for g in groups[~finite].tolist():
+            left_out[g] = f"its {obs.count[g]} points give no finite homography"
+        groups, Hs = groups[finite], Hs[finite]
+        if not len(groups):
+            continue
         info = model.cameras[ci]
         intrinsic_names = [_param(n) for n in info.intrinsics]
         skew = intrinsic_names[4] is not None and intrinsic_names[4] in unknown_set
         fitted = [n for n in intrinsic_names[:4] if n is not None and n in unknown_set]
         K = None
         if fitted and len(Hs) >= (3 if skew else 2):
-            K = intrinsics_from_homographies(Hs, skew=skew)
+            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+                K = intrinsics_from_homographies(Hs, skew=skew)
+            if not np.all(np.isfinite(K)):  # views that do not determine it (all parallel)
+                K = None
+        if K is not None:
             numbers = {
                 intrinsic_names[0]: [K[0, 0]],
                 intrinsic_names[1]: [K[1, 1]],
@@ -380,7 +436,7 @@ def initial_values(model: Model, data: MeasurementSet, unknown: Sequence[str]) -
         for g, T in zip(groups, poses_from_homographies(K, Hs)):
             poses[tuple(int(k) for k in obs.keys[g])] = T  # type: ignore[index]
     if not poses:
-        return values
+        return values, _left_out_notes(model, obs, left_out, set(), unknown_set)
     reference = cameras[0]
     T_world_ref = frame_poses0[model.cameras[reference].frame]
     parents: dict[int, np.ndarray] = {}
@@ -424,7 +480,30 @@ def initial_values(model: Model, data: MeasurementSet, unknown: Sequence[str]) -
                 for name, v in zip(names, row):
                     values[name + suffix] = float(v)
     release_memory(20 * obs.uv.nbytes)  # the stacked DLT systems and their SVD's work space
-    return values
+    return values, _left_out_notes(model, obs, left_out, set(chosen), unknown_set)
+
+
+def _left_out_notes(
+    model: Model, obs: _PlanarPoints, left_out: dict[int, str], posed: set[tuple[int, int]], unknown: set[str]
+) -> list[str]:
+    """A note for each view left out of Zhang's start whose target's pose is estimated and came
+    from no other camera: it starts at the nominal pose."""
+    notes = []
+    for g, why in sorted(left_out.items()):
+        ci, config_index, target = (int(k) for k in obs.keys[g])
+        frame = model.frames[target]
+        names = _pose_params(frame.pose) if frame.pose is not None else None
+        config = obs.configs[config_index]
+        if (config_index, target) in posed or not names:
+            continue
+        if not (all(f"{n}@{config}" in unknown for n in names) or all(n in unknown for n in names)):
+            continue
+        camera = model.short_name("camera", model.cameras[ci].name)
+        notes.append(
+            f"{config} (camera {camera}): {why}; Zhang's start left it out: the pose of "
+            f"'{model.short_name('frame', frame.name)}' there starts at the model's nominal values"
+        )
+    return notes
 
 
 # ---- the workflow --------------------------------------------------------------------------------------
@@ -443,6 +522,9 @@ class CameraCalibration:
     expression, the σ propagated from the unknowns it reads (None when it reads none)."""
     views: list[dict[str, Any]] = field(default_factory=list)
     rms: float = float("nan")
+    notes: list[str] = field(default_factory=list)
+    """Views that Zhang's start left out (:func:`zhang_start`): their targets' poses started at the
+    nominal values."""
 
     @property
     def ok(self) -> bool:
@@ -457,6 +539,7 @@ class CameraCalibration:
         }
         data["views"] = self.views
         data["rms_reprojection"] = self.rms
+        data["notes"] = self.notes
         return data
 
     def summary(self) -> str:
@@ -465,6 +548,7 @@ class CameraCalibration:
             f"camera calibration: {len(self.views)} views, "
             f"{sum(v['points'] for v in self.views)} points, RMS reprojection error {self.rms:.4f} px"
         ]
+        out.extend(f"note: {note}" for note in self.notes)
         at_bound = set(self.result.observability.active_bounds)
         for cam, values in self.intrinsics.items():
             info = model.cameras[model.camera_index(cam)]
@@ -571,7 +655,10 @@ def calibrate_cameras(
     """
     estimate = list(estimate) if estimate else default_unknowns(model, data)
     params = ParameterSet(model, estimate, configurations=data.config_names, per_configuration=data.configurations)
-    start = dict(initial_values(model, data, params.names)) if initialize else {}
+    start, notes = zhang_start(model, data, params.names) if initialize else ({}, [])
+    if progress is not None:
+        for note in notes:
+            progress(note)
     start.update(initial or {})
     auto = restarts is None
     first = (1 if initialize else AUTO_RESTARTS) if restarts is None else restarts
@@ -643,7 +730,7 @@ def calibrate_cameras(
                 {"config": config, "camera": cam, "points": int(count[k]), "rms": float(np.sqrt(total[k] / count[k]))}
             )
         rms = float(np.sqrt(np.mean(e2)))
-    return CameraCalibration(result, start, cams, intrinsics, views, rms)
+    return CameraCalibration(result, start, cams, intrinsics, views, rms, notes)
 
 
 def _view_image(images: Mapping[str, str], config: str, cam: str) -> str | None:
