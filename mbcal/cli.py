@@ -391,6 +391,27 @@ def _background(model, camera: str, path: str, option: str) -> np.ndarray:
     return image
 
 
+def _image_fits(model, camera: str, path: str, what: str) -> None:
+    """An image a measurement file names, checked before the work: it exists, is an image and has
+    the camera's size (its header only: the pixels are read when it is drawn on)."""
+    from PIL import Image, UnidentifiedImageError  # pillow: loaded when an image is checked
+
+    try:
+        with Image.open(path) as img:
+            width, height = img.size
+    except FileNotFoundError:
+        raise MbcalError(
+            f"{what}: image not found: {path}", hint="image paths in a JSON file are relative to its folder"
+        ) from None
+    except (UnidentifiedImageError, OSError) as err:
+        raise MbcalError(f"{what}: cannot read image {path}: {err}") from None
+    info = model.cameras[model.camera_index(camera)]
+    if (height, width) != (info.height, info.width):
+        raise MbcalError(
+            f"{what}: {path} is {width}×{height} pixels but camera '{camera}' is {info.width}×{info.height}"
+        )
+
+
 def _distinct(paths: Sequence[str]) -> None:
     """The same input file named twice would be read twice: its ids clash ("duplicate id 'hub'
     (first at the very same place)") or, for scans, its points count twice."""
@@ -711,10 +732,12 @@ def cmd_calibrate_camera(args: argparse.Namespace) -> int:
     _distinct(args.measurements)
     _check_outputs(args, inputs)
     model = _load(args.model, args, inputs)
-    data = merge_measurements([read_measurements(path, model) for path in args.measurements], model)
+    sets = [read_measurements(path, model) for path in args.measurements]
+    data = merge_measurements(sets, model)
     if args.restarts is not None:
         check_size(args.restarts)
     images = dict(data.images)
+    named_in = {key: path for path, ms in zip(args.measurements, sets) for key in ms.images}  # the last wins
     seen: dict[str, set[str]] = {}  # configuration → the cameras with corners in it
     for m in data:
         if m.kind == "image_point":
@@ -739,7 +762,21 @@ def cmd_calibrate_camera(args: argparse.Namespace) -> int:
     if args.image and not args.overlay:
         raise MbcalError("--image is for the overlays: give --overlay DIR too")
     protect(images.values())  # the measurement file's images too, not only those of --image
-    if args.overlay:  # an overlay named like one of its images (same folder): refused now, not after the solve
+    if args.overlay:  # its images and outputs checked now: a calibration was thrown away after the solve
+        if not images:
+            csv = [path for path in args.measurements if Path(path).suffix.lower() == ".csv"]
+            raise MbcalError(
+                "--overlay needs the views' images, and no measurement file names them",
+                hint=(f"a CSV file ({csv[0]}) carries no image paths: " if csv else "")
+                + "write the corners as JSON ('mbcal detect IMAGES --target MODEL -o corners.json' names each "
+                "view's image), or give --image CONFIG=PATH for each view",
+            )
+        for key, path in data.images.items():
+            if key in images and images[key] == path:  # not replaced by --image
+                config, _, camera = key.partition("@")
+                for cam in [model.resolve("camera", camera)] if camera else sorted(seen.get(config, ())):
+                    _image_fits(model, cam, path, f"{named_in.get(key, 'the measurement file')}: the image of {key}")
+        # an overlay named like one of its images (same folder): refused now, not after the solve
         _check_overlays(args, planned_reprojections(model, data.measurements, images, args.overlay))
     progress = Progress(not args.quiet)
     progress.step("initialising (Zhang's method) and refining")
@@ -756,9 +793,7 @@ def cmd_calibrate_camera(args: argparse.Namespace) -> int:
     )
     if args.overlay:
         progress.step("drawing the reprojected corners on the images")
-        if not images:
-            raise MbcalError("--overlay needs the images: detect them with 'mbcal detect' or give --image CONFIG=PATH")
-        reprojection_images(cc, images, args.overlay)
+        reprojection_images(cc, images, args.overlay)  # images checked before the solve
     progress.done()
     if args.json:
         _write_json(cc.to_json(), args.json, inputs)
@@ -1150,7 +1185,13 @@ def _register_commands(sub) -> None:
     p.add_argument("--name", metavar="TARGET", help="which target of the model (default: its only one)")
     p.add_argument("--camera", metavar="NAME", help="the camera that took the images (default: the first)")
     p.add_argument("--sigma", type=float, default=0.5, metavar="PX", help="σ of a detected corner (default 0.5 px)")
-    p.add_argument("-o", "--output", required=True, metavar="CORNERS.json", help="measurement file (.json or .csv)")
+    p.add_argument(
+        "-o",
+        "--output",
+        required=True,
+        metavar="CORNERS.json",
+        help="measurement file: .json (it names each view's image, for calibrate-camera --overlay) or .csv",
+    )
     _quiet_option(p)
 
     p = _add(

@@ -345,6 +345,70 @@ def test_calibrate_camera_checks_its_images_before_the_solve(tmp_path, capsys, m
     assert photo.read_bytes() == before and solved == []
 
 
+def test_calibrate_camera_checks_the_measurement_files_images_before_the_solve(tmp_path, capsys, monkeypatch):
+    """--overlay with corners from 'mbcal detect -o corners.csv' (CSV keeps no image paths), or with
+    a JSON file moved away from its images (paths relative to its folder), failed after the whole
+    solve and threw the calibration away; the hint said to run 'mbcal detect', which made them."""
+    import shutil
+
+    import mbcal
+    from mbcal.measurements.io import write_measurements
+    from mbcal.workflows.cameras import simulate_views
+
+    model_path = MODELS / "camera_calibration.mdl"
+    data, _ = simulate_views(mbcal.load_model(model_path), 3, {"cam.fx": 810.0}, seed=1, sigma=0.3)
+    views = list(dict.fromkeys(m.config for m in data))
+    for view in views:
+        Image.new("RGB", (640, 480)).save(tmp_path / f"{view}.png")
+    data.images = {view: str(tmp_path / f"{view}.png") for view in views}
+    write_measurements(data, tmp_path / "corners.csv")
+    write_measurements(data, tmp_path / "corners.json")
+    (tmp_path / "moved").mkdir()
+    shutil.copy(tmp_path / "corners.json", tmp_path / "moved" / "corners.json")
+    Image.new("RGB", (320, 240)).save(tmp_path / "small.png")
+    small = dict(data.images, **{views[1]: str(tmp_path / "small.png")})
+    data.images = small
+    write_measurements(data, tmp_path / "small.json")
+    solved = []
+
+    class SolvedError(Exception):
+        pass
+
+    def solve(*args, **kwargs):
+        solved.append(1)
+        raise SolvedError
+
+    monkeypatch.setattr("mbcal.workflows.cameras.calibrate_cameras", solve)
+    overlay = ["--overlay", str(tmp_path / "ov")]
+    cases = [
+        (
+            tmp_path / "corners.csv",
+            [
+                "--overlay needs the views' images, and no measurement file names them",
+                f"a CSV file ({tmp_path / 'corners.csv'}) carries no image paths",
+                "-o corners.json",
+            ],
+        ),
+        (
+            tmp_path / "moved" / "corners.json",
+            [f"{tmp_path / 'moved' / 'corners.json'}: the image of {views[0]}: image not found"],
+        ),
+        (tmp_path / "small.json", [f"the image of {views[1]}:", "is 320×240 pixels but camera 'cam' is 640×480"]),
+    ]
+    for corners, messages in cases:
+        assert cli.main(["calibrate-camera", str(model_path), str(corners), *overlay]) == 2
+        err = capsys.readouterr().err
+        assert all(message in err for message in messages), err
+    assert solved == [] and not (tmp_path / "ov").exists()  # refused before the solve
+    # --image gives what the CSV file lacks; without --overlay the images are not needed
+    images = [arg for view in views for arg in ("--image", f"{view}={tmp_path / f'{view}.png'}")]
+    with pytest.raises(SolvedError):
+        cli.main(["calibrate-camera", str(model_path), str(tmp_path / "corners.csv"), *images, *overlay])
+    with pytest.raises(SolvedError):
+        cli.main(["calibrate-camera", str(model_path), str(tmp_path / "moved" / "corners.json")])
+    assert len(solved) == 2
+
+
 def test_an_input_file_given_twice_is_refused(clicks, capsys):
     """It was read twice: 'duplicate id (first at lever.csv:2:1)', pointing at the very same place."""
     assert cli.main(["solve", LEVER, str(clicks), str(clicks), "--estimate", "lever.angle", "-q"]) == 2
