@@ -12,6 +12,7 @@ it, and estimate any parameter the measurements can observe.  The public API:
 from __future__ import annotations
 
 from importlib import import_module
+from importlib.util import find_spec
 from typing import Any
 
 from mbcal import _sources  # noqa: F401  (the source files as imported: mbcal.cache's key trusts only them)
@@ -61,10 +62,20 @@ __all__ = [*_EXPORTS, "__version__"]
 def __getattr__(name: str) -> Any:
     module = _EXPORTS.get(name)
     if module is None:
-        raise AttributeError(f"module 'mbcal' has no attribute '{name}'")
+        return _submodule(__name__, name)  # mbcal.measurements.registry() after a plain 'import mbcal'
     value = getattr(import_module(module), name)
     globals()[name] = value
     return value
+
+
+def _submodule(package: str, name: str) -> Any:
+    """The module ``package.name``, imported on first use: a package's ``__getattr__`` (PEP 562)
+    for its modules, so that a dotted name (``mbcal.workflows.cameras.plan_views``) works after a
+    plain ``import mbcal`` without importing them all at start-up.  An error inside the module (a
+    missing optional dependency) is its own, not an AttributeError."""
+    if name.startswith("__") or find_spec(f"{package}.{name}") is None:
+        raise AttributeError(f"module '{package}' has no attribute '{name}'")
+    return import_module(f"{package}.{name}")
 
 
 def __dir__() -> list[str]:

@@ -1,1 +1,9 @@
 """Readers for standard reference data sets used to validate mbcal."""
+
+from typing import Any
+
+from mbcal import _submodule
+
+
+def __getattr__(name: str) -> Any:  # the modules on first use: a dotted name works after 'import mbcal'
+    return _submodule(__name__, name)

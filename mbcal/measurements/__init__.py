@@ -23,6 +23,9 @@ This module only re-exports the protocol and the registry.
 
 from __future__ import annotations
 
+from typing import Any
+
+from mbcal import _submodule
 from mbcal.measurements.protocol import Batch, MeasurementModel, Role, frame_poses_with_world
 from mbcal.measurements.registry import (
     ENTRY_POINT_GROUP,
@@ -43,3 +46,7 @@ __all__ = [
     "ENTRY_POINT_GROUP",
     "frame_poses_with_world",
 ]
+
+
+def __getattr__(name: str) -> Any:  # the modules on first use: a dotted name works after 'import mbcal'
+    return _submodule(__name__, name)

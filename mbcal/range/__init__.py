@@ -1,2 +1,10 @@
 """Range data in: point clouds and depth images, automatic calibration from scans, and the
 environment model manager (docs/range.md)."""
+
+from typing import Any
+
+from mbcal import _submodule
+
+
+def __getattr__(name: str) -> Any:  # the modules on first use: a dotted name works after 'import mbcal'
+    return _submodule(__name__, name)
