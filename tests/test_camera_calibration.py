@@ -137,7 +137,7 @@ def test_corners_detected_in_zhangs_images_calibrate_the_camera(tmp_path):
         theirs = np.loadtxt(folder / f"data{view}.txt").reshape(-1, 2)
         ours = np.array([m.value for m in data if m.config == f"CalibIm{view}"])
         nearest = np.linalg.norm(ours[:, None] - theirs[None], axis=2).min(axis=1)
-        assert np.median(nearest) < 0.5 and nearest.max() < 1.5
+        assert np.median(nearest) < 0.4 and nearest.max() < 1.0  # measured: 0.21-0.30 and 0.49-0.71 px
     report = tmp_path / "camera.json"
     calibrated = subprocess.run(
         [
@@ -166,8 +166,8 @@ def test_corners_detected_in_zhangs_images_calibrate_the_camera(tmp_path):
     assert "per view:" in calibrated.stdout and "RMS reprojection error" in calibrated.stdout
     result = json.loads(report.read_text())
     cam = result["cameras"]["cam"]
-    for key in ("fx", "fy", "cx", "cy"):
-        assert cam[key]["value"] == pytest.approx(ZHANG[key], rel=0.01), key
+    for key in ("fx", "fy", "cx", "cy"):  # his camera model (k1, k2): measured within 0.15 %
+        assert cam[key]["value"] == pytest.approx(ZHANG[key], rel=0.005), key
         assert cam[key]["std"] is not None and cam[key]["std"] > 0
     assert result["rms_reprojection"] < 0.5 and len(result["views"]) == 5
     assert len(list((tmp_path / "reprojection").glob("*.png"))) == 5
