@@ -13,6 +13,14 @@ its position in the photo, chooses the unknowns, checks observability, solves an
 
 from __future__ import annotations
 
+from typing import Any
+
+from mbcal import _submodule
+
 __all__ = ["MISSING_EXTRA"]
 
 MISSING_EXTRA = "the studio needs its optional dependencies: pip install 'mbcal[studio]'"
+
+
+def __getattr__(name: str) -> Any:  # the modules on first use: a dotted name works after 'import mbcal'
+    return _submodule(__name__, name)
