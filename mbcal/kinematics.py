@@ -275,6 +275,10 @@ class Kinematics:
         self.indices = np.array([model.param_index(n) for n in self.joints], dtype=int)
         self.n = len(self.joints)
         self.lower, self.upper, self.kinds = _limits(model, self.joints, self.path)
+        # the variables the target's pose has period 2π in (IK brings them into (−π, π])
+        self.periodic = _periodic(model, self.indices, self.path, self.point) & ~(
+            np.isfinite(self.lower) | np.isfinite(self.upper)
+        )
         self._segments: list[_Segment] | None = None
         self._tail: np.ndarray | None = None
         self._local: np.ndarray | None = None
@@ -666,7 +670,7 @@ class Kinematics:
             solved = least_squares(fun, x0, config=config)
             u = solved.x[:, : self.n].reshape(B, restarts, self.n)
             cost = np.where(np.isfinite(solved.cost), solved.cost, np.inf).reshape(B, restarts)
-            every = _wrap(_from_free(u, self.lower, self.upper), self.kinds, self.lower, self.upper)
+            every = _wrap(_from_free(u, self.lower, self.upper), self.periodic)
             best = self._choose(every, cost, starts[:, 0], tolerance)
             theta = every[np.arange(B), best]
             status = solved.status.reshape(B, restarts)[np.arange(B), best]
@@ -704,8 +708,7 @@ class Kinematics:
         """Per target, the restart that reached it with the least joint motion from the initial
         values; the smallest cost when none reached it.  θ (B, R, n), cost (B, R) → (B,)."""
         step = theta - initial[:, None, :]
-        turns = np.array([k == "revolute" for k in self.kinds])
-        step = np.where(turns, np.pi - np.mod(np.pi - step, 2.0 * np.pi), step)  # the shorter way round
+        step = np.where(self.periodic, np.pi - np.mod(np.pi - step, 2.0 * np.pi), step)  # the shorter way round
         motion = np.linalg.norm(step, axis=2)
         reached = cost <= tolerance * tolerance
         return np.where(reached.any(axis=1), np.argmin(np.where(reached, motion, np.inf), axis=1), np.argmin(cost, 1))
@@ -1189,11 +1192,37 @@ def _centre_half(lower: np.ndarray, upper: np.ndarray) -> tuple[np.ndarray, np.n
     return np.where(both, 0.5 * (lo + hi), 0.0), np.where(both & (half > 0), half, 1.0)
 
 
-def _wrap(theta: np.ndarray, kinds: Sequence[str], lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
-    """Revolute readings without limits brought into (−π, π] (the kinematics has period 2π)."""
-    free = np.array([k == "revolute" for k in kinds]) & ~np.isfinite(lower) & ~np.isfinite(upper)
+def _periodic(model: Model, indices: np.ndarray, path: Sequence[int], point: int | None) -> np.ndarray:
+    """Which chain variables the target's pose has period 2π in, by the model's structure: every
+    use on the path is the angle of a revolute joint itself (``joint revolute(AXIS, q)``, any
+    offset).  A variable scaled or shifted on its way to a joint (``0.5 * q``, a URDF ``<mimic>``)
+    or used in a pose is not: θ and θ − 2π put the target in different places."""
+    angles: set[int] = set()
+    elsewhere: set[int] = set()
+    nodes: list[ir.Node] = []
+    for f in path:
+        frame = model.frames[f]
+        if frame.pose is not None:
+            nodes.append(frame.pose)
+        joint = frame.joint
+        if joint is None:
+            continue
+        nodes += [joint.axis] + ([joint.offset] if joint.offset is not None else [])
+        if joint.kind == "revolute" and isinstance(joint.q, ParamRef):
+            angles.add(joint.q.index)
+        else:
+            nodes.append(joint.q)
+    if point is not None:
+        nodes.append(model.points[point].position)
+    for node in nodes:
+        elsewhere |= depends_on(node)
+    return np.array([int(i) in angles and int(i) not in elsewhere for i in indices], dtype=bool)
+
+
+def _wrap(theta: np.ndarray, periodic: np.ndarray) -> np.ndarray:
+    """The variables the pose has period 2π in (:func:`_periodic`, no limits) brought into (−π, π]."""
     wrapped = np.pi - np.mod(np.pi - theta, 2.0 * np.pi)
-    return np.where(free, wrapped, theta)
+    return np.where(periodic, wrapped, theta)
 
 
 def _rotvec(R: np.ndarray) -> np.ndarray:

@@ -362,6 +362,83 @@ def test_ik_respects_joint_limits_for_a_target_only_reachable_beyond_them(urdf_m
     assert (result.theta >= kin.lower).all() and (result.theta <= kin.upper).all()
 
 
+TWICE = """
+param q = 0 deg per configuration
+param r = 0 deg per configuration
+object a at (0, 0, 0) {
+  joint revolute(z, q)
+  object b at (0.3 m, 0, 0) {
+    joint revolute(z, 0.5 * q)
+    object c at (0.2 m, 0, 0) {
+      joint revolute(z, r)
+      point tip = (0.1 m, 0, 0)
+    }
+  }
+}
+"""
+
+# j3 mimics the continuous j1 (−0.5 · j1 + 0.2, limited to ±2 rad); j4 is on the point's axis
+MIX = """<?xml version="1.0"?>
+<robot name="mix">
+  <link name="base"/><link name="a"/><link name="b"/><link name="c"/><link name="d"/>
+  <joint name="j1" type="continuous"><parent link="base"/><child link="a"/>
+    <origin xyz="0.1 0.2 0.3" rpy="0.3 -0.2 0.5"/><axis xyz="0 0 2"/></joint>
+  <joint name="j2" type="prismatic"><parent link="a"/><child link="b"/><origin xyz="0.2 0 0.05" rpy="0 0.4 0"/>
+    <axis xyz="0.6 0.8 0"/><limit lower="-0.1" upper="0.3" effort="1" velocity="1"/></joint>
+  <joint name="j3" type="revolute"><parent link="b"/><child link="c"/><origin xyz="0 0.15 0" rpy="-0.7 0 0.1"/>
+    <axis xyz="0 1 0"/><limit lower="-2" upper="2" effort="1" velocity="1"/>
+    <mimic joint="j1" multiplier="-0.5" offset="0.2"/></joint>
+  <joint name="j4" type="revolute"><parent link="c"/><child link="d"/><origin xyz="0.1 0 0.2" rpy="0 0 0"/>
+    <axis xyz="1 0 0"/><limit lower="-2" upper="2" effort="1" velocity="1"/></joint>
+</robot>
+"""
+
+
+def twice_position(q: float, r: float) -> np.ndarray:
+    """The tip of TWICE by hand: the second joint turns by q/2 on top of q."""
+    angles = np.cumsum([q, 0.5 * q, r])
+    return sum(length * np.array([np.cos(a), np.sin(a), 0.0]) for length, a in zip((0.3, 0.2, 0.1), angles))
+
+
+@pytest.mark.slow
+def test_ik_wraps_only_variables_the_pose_repeats_in_after_a_full_turn(write_model):
+    """q turns one joint by q and the next by q/2: the pose has period 4π in q, not 2π.  IK found
+    q = 250° from that very start, brought it to −110° (another pose, 0.6 m away) and said the
+    target was out of reach."""
+    kin = Kinematics(mbcal.load_model(write_model(TWICE)), "tip")
+    assert kin.joints == ["q", "r"] and kin.periodic.tolist() == [False, True]
+    theta = np.radians([250.0, 10.0])
+    target = twice_position(*theta)
+    np.testing.assert_allclose(np.asarray(kin.position(theta)), target, atol=1e-15)
+    assert np.linalg.norm(twice_position(theta[0] - 2 * np.pi, theta[1]) - target) > 0.5
+    for start in (theta, np.radians([0.0, 370.0])):
+        result = kin.ik(target, initial=start, restarts=4)
+        assert result.reached and result.distance <= 1e-9, result.report()
+        np.testing.assert_allclose(twice_position(*result.theta), target, atol=1e-9)
+        np.testing.assert_allclose(np.asarray(kin.position(result.theta)), result.position, atol=1e-15)
+        assert -np.pi < result.theta[1] <= np.pi  # r alone turns a joint: wrapped
+    # every variable a revolute angle of its own: wrapped as before
+    serial = Kinematics(mbcal.load_model(write_model(TWICE.replace("0.5 * q", "r"), "serial.mdl")), "tip")
+    assert serial.periodic.tolist() == [True, True]
+
+
+@pytest.mark.slow
+def test_ik_keeps_a_continuous_joint_that_a_mimic_follows_unwrapped(tmp_path):
+    path = tmp_path / "mix.urdf"
+    path.write_text(MIX, encoding="utf-8")
+    kin = Kinematics(mbcal.load_model(path), "d", what="frame")
+    assert kin.joints == ["j1.q", "j2.q", "j4.q"] and not kin.periodic.any()
+    robot = yourdfpy.URDF.load(str(path), load_meshes=False)
+    theta = np.array([4.0, 0.1, 0.3])  # j3 = −1.8 rad, within its limits
+    robot.update_cfg({"j1": theta[0], "j2": theta[1], "j4": theta[2]})
+    target = robot.get_transform("d", robot.base_link)[:3, 3]
+    np.testing.assert_allclose(np.asarray(kin.position(theta)), target, atol=1e-12)
+    result = kin.ik(target, initial=theta, restarts=4)
+    assert result.reached and result.distance <= 1e-9, result.report()
+    robot.update_cfg(dict(zip(["j1", "j2", "j4"], result.theta)))
+    np.testing.assert_allclose(robot.get_transform("d", robot.base_link)[:3, 3], target, atol=1e-9)
+
+
 # ---- float64 ------------------------------------------------------------------------------------------------
 
 
