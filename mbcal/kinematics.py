@@ -44,7 +44,7 @@ from mbcal.language.model import Model
 from mbcal.modeling import parameter_vector
 from mbcal.solver import SolverConfig, Status, check_size, least_squares
 from mbcal.text import fmt, table
-from mbcal.units import ANGLE, LENGTH
+from mbcal.units import ANGLE, LENGTH, within
 
 Array = Any
 
@@ -236,7 +236,8 @@ class Kinematics:
     The other parameters are folded in as constants when the programs are compiled, so a
     ``Kinematics`` is made for one set of values: build a new one for other values.  Joint
     limits (``lower``/``upper`` of the model's joints, the readings they apply to) bound the
-    inverse kinematics.
+    inverse kinematics: those of the chain's variables, and those of the joints the chain
+    drives through an expression (:attr:`driven`: a URDF ``<mimic>``, ``0.5 * q``).
     """
 
     def __init__(
@@ -275,9 +276,15 @@ class Kinematics:
         self.indices = np.array([model.param_index(n) for n in self.joints], dtype=int)
         self.n = len(self.joints)
         self.lower, self.upper, self.kinds = _limits(model, self.joints, self.path)
-        # the variables the target's pose has period 2π in (IK brings them into (−π, π])
-        self.periodic = _periodic(model, self.indices, self.path, self.point) & ~(
-            np.isfinite(self.lower) | np.isfinite(self.upper)
+        self._driven = _driven_joints(model, self.indices)
+        self.driven = [d.name for d in self._driven]
+        # the variables the target's pose has period 2π in (IK brings them into (−π, π]): not one
+        # that a limited driven joint follows either, whose limits hold for θ, not for θ − 2π
+        bounded = {i for d in self._driven if d.limited for i in depends_on(d.q)}
+        self.periodic = (
+            _periodic(model, self.indices, self.path, self.point)
+            & ~(np.isfinite(self.lower) | np.isfinite(self.upper))
+            & np.array([int(i) not in bounded for i in self.indices], dtype=bool)
         )
         self._segments: list[_Segment] | None = None
         self._tail: np.ndarray | None = None
@@ -298,6 +305,30 @@ class Kinematics:
     def theta0(self) -> np.ndarray:
         """(n,) the chain variables' values in ``values`` (nominal unless given)."""
         return self.values[self.indices].copy()
+
+    def driven_values(self, theta: Array) -> np.ndarray:
+        """(..., d) the readings of the joints the chain drives through an expression (a URDF
+        ``<mimic>``, ``joint revolute(z, 0.5 * q)``), in the order of :attr:`driven` (SI units)."""
+        if not self._driven:
+            return np.zeros(np.shape(theta)[:-1] + (0,))
+        return np.asarray(self._call("driven", lambda th: jax.vmap(self._driven_single)(th), theta))
+
+    def _driven_single(self, theta: Array) -> Array:
+        X: list[Any] = [float(v) for v in self.values]
+        for k, i in enumerate(self.indices):
+            X[int(i)] = theta[k]
+        memo: dict[int, Any] = {}
+        return jnp.stack([jnp.asarray(soa.evaluate(d.q, X, memo), dtype=jnp.float64) for d in self._driven])
+
+    def _outside_driven(self, values: np.ndarray, slack: Callable[[str], float] | None = None) -> list[str]:
+        """Names of the driven joints outside their limits (``slack(kind)`` allowed;
+        default a few ulps, :func:`mbcal.units.within`)."""
+        out = []
+        for d, v in zip(self._driven, values):
+            extra = 0.0 if slack is None else slack(d.kind)
+            if not (within(float(v), d.lower, d.upper) or d.lower - extra <= v <= d.upper + extra):
+                out.append(d.name)
+        return out
 
     def __repr__(self) -> str:
         joints = ", ".join(self.joints)
@@ -601,8 +632,11 @@ class Kinematics:
         Marquardt's method (:func:`mbcal.solver.least_squares`) from ``restarts`` starts per
         target — the initial values, then uniform draws within the joint limits (or the
         parameter's search range, or ±180° for an angle, ±1 m for a length) — all targets and
-        restarts in one compiled, vmapped call.  Joint limits hold exactly: a limited variable
-        is θ = c + h·sin(u) with c ± h its limits.
+        restarts in one compiled, vmapped call.  A chain variable's joint limits hold exactly: a
+        limited variable is θ = c + h·sin(u) with c ± h its limits.  The joints the chain drives
+        through an expression (:attr:`driven`, a ``<mimic>``) are kept within theirs by residual
+        rows that are 0 inside them: a target is reached only with each of them within its
+        limits (to ``angle_tolerance`` rad or ``tolerance`` m).
 
         Parameters
         ----------
@@ -676,6 +710,7 @@ class Kinematics:
             status = solved.status.reshape(B, restarts)[np.arange(B), best]
             iterations = solved.iterations.reshape(B, restarts)[np.arange(B), best]
             poses = np.asarray(self.pose(theta))
+            driven = self.driven_values(theta)  # (B, d)
         position, rotation = poses[:, :3, 3], poses[:, :3, :3]
         distance = np.linalg.norm(position - targets, axis=1)
         angle = None
@@ -684,6 +719,10 @@ class Kinematics:
             angle = np.array([_angle_between(R, Rt) for R, Rt in zip(rotation, rotations)])
             reached &= angle <= angle_tolerance
         reached &= np.all(np.isfinite(theta), axis=1)
+        # a driven joint (a <mimic>) outside its limits: the robot cannot take θ, the target is not reached
+        slack = {"revolute": angle_tolerance, "prismatic": tolerance}
+        outside = tuple(tuple(self._outside_driven(row, slack.__getitem__)) for row in driven)
+        reached &= np.array([not names for names in outside], dtype=bool)
         return IKResult(
             joints=tuple(self.joints),
             target=self.label,
@@ -702,6 +741,7 @@ class Kinematics:
             angle_tolerance=angle_tolerance,
             single=single,
             units=tuple(self._unit(k) for k in range(self.n)),
+            outside_limits=outside,
         )
 
     def _choose(self, theta: np.ndarray, cost: np.ndarray, initial: np.ndarray, tolerance: float) -> np.ndarray:
@@ -721,6 +761,16 @@ class Kinematics:
         if key in self._ik_funs:
             return self._ik_funs[key]
         n, lower, upper = self.n, self.lower, self.upper
+        # joints driven through an expression (a <mimic>) are held within their limits by rows
+        # that are 0 inside them and the excess outside (rad or m, weighed as metres)
+        limited = [d for d in self._driven if d.limited]
+        low, high = np.array([d.lower for d in limited]), np.array([d.upper for d in limited])
+
+        def excess(theta: Array) -> Array:
+            v = self._driven_single(theta)[np.array([d.limited for d in self._driven])]
+            above = jnp.where(np.isfinite(high), jnp.maximum(v - np.where(np.isfinite(high), high, 0.0), 0.0), 0.0)
+            below = jnp.where(np.isfinite(low), jnp.minimum(v - np.where(np.isfinite(low), low, 0.0), 0.0), 0.0)
+            return above + below
 
         def fun(x: Array) -> Array:
             theta = _from_free_jax(x[:n], lower, upper)
@@ -730,6 +780,8 @@ class Kinematics:
             if with_orientation:
                 Rt = jnp.stack([jnp.stack(row) for row in sm.rotation_vector((data[3], data[4], data[5]))])
                 r = jnp.concatenate([r, (weight / math.sqrt(2.0)) * (R - Rt).reshape(9)])
+            if limited:
+                r = jnp.concatenate([r, excess(theta)])
             return r
 
         self._ik_funs[key] = fun
@@ -808,8 +860,27 @@ class Kinematics:
                 title="\nθ",
             )
         )
-        # a configuration the joints cannot take (IK holds these limits exactly): said, not silent
+        driven = self.driven_values(theta)
+        if self._driven:
+            lines.append(
+                table(
+                    ["joint", "value", "unit", "lower", "upper"],
+                    [
+                        [
+                            d.name,
+                            _display(d.kind, value),
+                            _kind_unit(d.kind),
+                            _display(d.kind, d.lower),
+                            _display(d.kind, d.upper),
+                        ]
+                        for d, value in zip(self._driven, driven)
+                    ],
+                    title="\njoints the chain drives",
+                )
+            )
+        # a configuration the joints cannot take (IK holds these limits): said, not silent
         outside = [name for k, name in enumerate(self.joints) if not self.lower[k] <= theta[k] <= self.upper[k]]
+        outside += self._outside_driven(driven)
         if outside:
             lines.append(f"outside the joint limits: {', '.join(outside)} (the robot cannot take this configuration)")
         rpy = np.degrees(rpy_from_matrix(R))
@@ -851,6 +922,16 @@ class Kinematics:
                     "upper": _finite(self.upper[k]),
                 }
                 for k, name in enumerate(self.joints)
+            ],
+            "driven": [
+                {
+                    "name": d.name,
+                    "value": float(value),
+                    "unit": "m" if d.kind == "prismatic" else "rad",
+                    "lower": _finite(d.lower),
+                    "upper": _finite(d.upper),
+                }
+                for d, value in zip(self._driven, driven)
             ],
             "position": p.tolist(),
             "rotation": R.tolist(),
@@ -910,6 +991,9 @@ class IKResult:
         Within ``tolerance`` (and ``angle_tolerance``).
     status, iterations : (B,) int
         The solver's :class:`~mbcal.solver.Status` code and iterations of the best restart.
+    outside_limits : (B,) tuple of tuples of str
+        The joints the chain drives through an expression (a ``<mimic>``) that θ puts outside
+        their limits, named as in :attr:`Kinematics.driven`; such a target is not reached.
     """
 
     joints: tuple[str, ...]
@@ -929,9 +1013,12 @@ class IKResult:
     angle_tolerance: float
     single: bool = field(default=False)
     units: tuple[str, ...] = ()
+    outside_limits: tuple[Any, ...] = ()
 
     def __post_init__(self) -> None:
         if self.single:
+            if self.outside_limits:
+                object.__setattr__(self, "outside_limits", tuple(self.outside_limits[0]))
             for name in ("theta", "position", "rotation", "target_position", "distance", "reached", "status",
                          "iterations"):  # fmt: skip
                 object.__setattr__(self, name, np.asarray(getattr(self, name))[0])
@@ -943,6 +1030,12 @@ class IKResult:
     def _rows(self, name: str) -> np.ndarray:
         value = np.asarray(getattr(self, name))
         return value[None] if self.single else value
+
+    def _outside_rows(self) -> list[tuple[str, ...]]:
+        count = len(self._rows("distance"))
+        if not self.outside_limits:
+            return [()] * count
+        return [tuple(self.outside_limits)] if self.single else [tuple(names) for names in self.outside_limits]
 
     @property
     def unreachable(self) -> list[int]:
@@ -959,6 +1052,7 @@ class IKResult:
         theta, pos, tgt = self._rows("theta"), self._rows("position"), self._rows("target_position")
         dist, reached, status = self._rows("distance"), self._rows("reached"), self._rows("status")
         angle = None if self.angle is None else self._rows("angle")
+        outside = self._outside_rows()
         deg = [u == "deg" for u in (units or self.units or [""] * len(self.joints))]
 
         def show(t: np.ndarray) -> str:
@@ -973,11 +1067,12 @@ class IKResult:
             if reached[b]:
                 lines.append(f"{label}: {self.target} at {where} reached (error {err}): θ = {show(theta[b])}")
             else:
+                beyond = f"; it leaves the joint limits of {', '.join(outside[b])}" if outside[b] else ""
                 lines.append(
                     f"{label}: {where} is out of reach for {self.target} (tolerance {fmt(self.tolerance, 3)} m): "
                     f"the closest pose found puts it at ({', '.join(fmt(v, 6) for v in pos[b])}) m, "
                     f"{err} away, with θ = {show(theta[b])} [{Status(int(status[b])).label}, "
-                    f"best of {self.restarts} starts]"
+                    f"best of {self.restarts} starts]{beyond}"
                 )
         return "\n".join(lines)
 
@@ -996,6 +1091,7 @@ class IKResult:
         theta, pos, tgt = self._rows("theta"), self._rows("position"), self._rows("target_position")
         dist, reached, status = self._rows("distance"), self._rows("reached"), self._rows("status")
         angle = None if self.angle is None else self._rows("angle")
+        outside = self._outside_rows()
         for b in range(len(dist)):
             rows.append(
                 {
@@ -1006,6 +1102,7 @@ class IKResult:
                     "distance": float(dist[b]),
                     "angle": None if angle is None else float(angle[b]),
                     "status": Status(int(status[b])).label,
+                    "outside_limits": list(outside[b]),
                 }
             )
         return {"tolerance": self.tolerance, "restarts": self.restarts, "targets": rows}
@@ -1136,23 +1233,78 @@ def _resolve_chain(
 
 
 def _limits(model: Model, joints: Sequence[str], path: Sequence[int]) -> tuple[np.ndarray, np.ndarray, list[str]]:
-    """Joint limits of each chain variable (±inf where none) and its kind (revolute, prismatic,
-    parameter)."""
+    """Joint limits of each chain variable (±inf where none: those of every joint it is the
+    reading of, on the path or not) and its kind (revolute, prismatic, parameter; from the path
+    first)."""
     lower = np.full(len(joints), -np.inf)
     upper = np.full(len(joints), np.inf)
     kinds = ["parameter"] * len(joints)
     position = {name: k for k, name in enumerate(joints)}
-    for f in path:
+    on_path = set(path)
+    for f in [*path, *(f for f in range(len(model.frames)) if f not in on_path)]:
         joint = model.frames[f].joint
         if joint is None or not isinstance(joint.q, ParamRef) or joint.q.name not in position:
             continue
         k = position[joint.q.name]
-        kinds[k] = joint.kind
+        if kinds[k] == "parameter":
+            kinds[k] = joint.kind
         if joint.lower is not None:
             lower[k] = max(lower[k], joint.lower)
         if joint.upper is not None:
             upper[k] = min(upper[k], joint.upper)
     return lower, upper, kinds
+
+
+@dataclass(frozen=True)
+class _Driven:
+    """A joint the chain drives through an expression (a URDF ``<mimic>``, ``0.5 * q``), named by
+    :func:`_joint_name`."""
+
+    name: str
+    kind: str  # revolute | prismatic
+    q: ir.Node
+    lower: float  # −inf: none
+    upper: float  # inf: none
+
+    @property
+    def limited(self) -> bool:
+        return math.isfinite(self.lower) or math.isfinite(self.upper)
+
+
+def _driven_joints(model: Model, indices: np.ndarray) -> list[_Driven]:
+    """Every joint of the model (on the path to the target or not) whose reading depends on the
+    chain without being one of its variables; their limits bound the chain too."""
+    chain = {int(i) for i in indices}
+    out = []
+    for frame in model.frames:
+        joint = frame.joint
+        if joint is None or (isinstance(joint.q, ParamRef) and joint.q.index in chain):
+            continue
+        if chain & depends_on(joint.q):
+            name = _joint_name(model, frame)
+            low = -math.inf if joint.lower is None else float(joint.lower)
+            high = math.inf if joint.upper is None else float(joint.upper)
+            out.append(_Driven(name, joint.kind, joint.q, low, high))
+    return out
+
+
+def _joint_name(model: Model, frame: Any) -> str:
+    """A joint's name in reports: a URDF joint's own (its mdl name, the prefix of its ``J.offset``),
+    else its frame's (which stands for it in a chain)."""
+    joint = frame.joint
+    offset = joint.offset if joint is not None else None
+    if str(model.path).lower().endswith(".urdf") and isinstance(offset, ParamRef) and offset.name.endswith(".offset"):
+        return offset.name[: -len(".offset")]
+    return model.short_name("frame", frame.name)
+
+
+def _kind_unit(kind: str) -> str:
+    return "m" if kind == "prismatic" else "deg"
+
+
+def _display(kind: str, value: float) -> float:
+    """A joint reading (SI) as shown: degrees for a revolute joint."""
+    return float(value) if kind == "prismatic" else math.degrees(value)
 
 
 def _to_free(theta: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:

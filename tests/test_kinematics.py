@@ -5,6 +5,7 @@ orientation, batches); float64 whatever the caller did; errors; the ``mbcal kine
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 
@@ -437,6 +438,58 @@ def test_ik_keeps_a_continuous_joint_that_a_mimic_follows_unwrapped(tmp_path):
     assert result.reached and result.distance <= 1e-9, result.report()
     robot.update_cfg(dict(zip(["j1", "j2", "j4"], result.theta)))
     np.testing.assert_allclose(robot.get_transform("d", robot.base_link)[:3, 3], target, atol=1e-9)
+
+
+def test_a_joint_the_chain_drives_outside_its_limits_is_named(tmp_path, write_model, capsys):
+    """j3 mimics j1 (−0.5 · j1 + 0.2, limits ±2 rad): at j1 = 10 rad it is at −4.8 rad, and the
+    report said nothing (outside_limits [], exit 0) — only the chain's own variables were checked."""
+    path = tmp_path / "mix.urdf"
+    path.write_text(MIX, encoding="utf-8")
+    kin = Kinematics(mbcal.load_model(path), "d", what="frame")
+    assert kin.driven == ["j3"]  # a URDF joint by its own name
+    Q = np.array([[10.0, 0.1, 0.3], [4.0, 0.1, 0.3], [-3.0, 0.0, 0.0]])
+    np.testing.assert_allclose(kin.driven_values(Q)[:, 0], -0.5 * Q[:, 0] + 0.2, atol=1e-15)
+    text, data = kin.report(Q[0])
+    assert "outside the joint limits: j3" in text and data["outside_limits"] == ["j3"]
+    limits = {"lower": pytest.approx(-2.0, abs=1e-14), "upper": pytest.approx(2.0, abs=1e-14)}  # via degrees
+    assert data["driven"] == [{"name": "j3", "value": pytest.approx(-4.8, abs=1e-15), "unit": "rad", **limits}]
+    assert kin.report(Q[1])[1]["outside_limits"] == []
+    assert main(["kinematics", str(path), "--point", "d", "--joints=10,0.1,0.3", "--json", "-"]) == 1
+    out = capsys.readouterr().out
+    assert json.loads(out[out.index("{") :])["outside_limits"] == ["j3"]
+    # a parameter that drives a second joint by 0.5 * q: that joint by its frame's name, in degrees
+    limited = TWICE.replace("0.5 * q)", "0.5 * q, lower = -60 deg, upper = 60 deg)")
+    twice = Kinematics(mbcal.load_model(write_model(limited)), "tip")
+    assert twice.driven == ["a.b"] and twice.periodic.tolist() == [False, True]
+    text, data = twice.report(np.radians([250.0, 10.0]))
+    assert "outside the joint limits: a.b" in text and re.search(r"\na\.b +125 +deg +-60 +60\n", text), text
+
+
+@pytest.mark.slow
+def test_ik_keeps_the_joints_the_chain_drives_within_their_limits(tmp_path):
+    path = tmp_path / "mix.urdf"
+    path.write_text(MIX, encoding="utf-8")
+    kin = Kinematics(mbcal.load_model(path), "d", what="frame")
+    # j1 = 10 rad puts j3 at −4.8 rad; j1 = 10 − 4π reaches the same point with j3 = 1.48 rad
+    start = np.array([10.0, 0.1, 0.3])
+    target = np.asarray(kin.position(start))
+    result = kin.ik(target, initial=start, restarts=8)
+    assert result.reached and result.distance <= 1e-9 and result.outside_limits == ()
+    assert abs(-0.5 * result.theta[0] + 0.2) <= 2.0
+    np.testing.assert_allclose(np.asarray(kin.position(result.theta)), target, atol=1e-9)
+    # j1 = 6 rad (j3 = −2.8 rad): no θ within the limits puts d there; the closest found is not
+    # called reached, and a j3 left outside its limits is named
+    start = np.array([6.0, 0.1, 0.3])
+    result = kin.ik([target, np.asarray(kin.position(start))], initial=start, restarts=8)
+    assert result.reached.tolist() == [True, False] and result.unreachable == [1]
+    beyond = not -2.0 - 1e-6 <= -0.5 * result.theta[1, 0] + 0.2 <= 2.0 + 1e-6
+    assert result.outside_limits[1] == (("j3",) if beyond else ())
+    assert (result.distance[1] > 1e-6) or beyond
+    assert result.to_json()["targets"][1]["outside_limits"] == list(result.outside_limits[1])
+    # the reported θ at the boundary, the target met exactly: reached only within the limits
+    at_edge = np.array([-3.6, 0.1, 0.3])  # j3 = 2 rad exactly
+    result = kin.ik(np.asarray(kin.position(at_edge)), initial=at_edge - [0.3, 0.0, 0.0], restarts=4)
+    assert result.reached and -0.5 * result.theta[0] + 0.2 <= 2.0 + 1e-6
 
 
 # ---- float64 ------------------------------------------------------------------------------------------------
