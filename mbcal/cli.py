@@ -1298,7 +1298,8 @@ def _register_commands(sub) -> None:
         The seed's kinematics model (eqs. 5-7) from any model, at its nominal values or those given
         with --set (calibrated offsets, say): the world pose x = f(θ) of a point or frame for the
         joint values θ of a chain, the Jacobian J = df/dθ (rows vx vy vz wx wy wz), J* = Jᵀ(JJᵀ)⁻¹
-        and the manipulability.  With --ik: the joint values that put the point at a target
+        (for a chain with fewer joints than rows the least-squares step (JᵀJ)⁻¹Jᵀ) and the
+        manipulability.  With --ik: the joint values that put the point at a target
         (Marquardt from random starts within the joint limits), or, when it is out of reach, the
         closest pose found and its distance.
 

@@ -114,12 +114,16 @@ def to_local(J: Array, rotation: Array) -> Array:
 
 
 def pseudo_inverse(J: Array, damping: float | Array = 0.0) -> Array:
-    """J* = Jᵀ(JJᵀ + λ²I)⁻¹ (seed, eq. 7; λ = ``damping``, 0 gives the seed's J*).
+    """J* = Jᵀ(JJᵀ + λ²I)⁻¹ (seed, eq. 7; λ = ``damping``, 0 gives the seed's J*), or
+    (JᵀJ + λ²I)⁻¹Jᵀ for a chain with fewer joints than rows.
 
     Parameters
     ----------
     J : (..., m, n) array
-        Jacobians (m ≤ n: a right inverse, J J* = I where JJᵀ is invertible).
+        Jacobians.  m ≤ n: the right inverse, J J* = I where JJᵀ is invertible.  m > n (fewer
+        joints than rows: JJᵀ has rank n < m and is never invertible): the left inverse, the
+        least-squares joint step, J* J = I where JᵀJ is invertible.  Both are the Moore–Penrose
+        inverse of a J of full rank, and the same matrix for λ > 0.
     damping : float
         λ of the damped least-squares inverse (Wampler, Nakamura): finite at singular
         configurations, at the price of ‖J J* − I‖ ≈ λ²/σ² along directions of small σ.
@@ -127,13 +131,18 @@ def pseudo_inverse(J: Array, damping: float | Array = 0.0) -> Array:
     Returns
     -------
     (..., n, m) array
-        NaN where JJᵀ + λ²I is singular to working precision (eigenvalue ratio below
-        :data:`SINGULAR`; only possible for λ = 0 or a tiny λ).
+        NaN where JJᵀ + λ²I (JᵀJ + λ²I for m > n) is singular to working precision (eigenvalue
+        ratio below :data:`SINGULAR`; only possible for λ = 0 or a tiny λ).
     """
-    m = J.shape[-2]
-    A = J @ jnp.swapaxes(J, -1, -2) + (damping * damping) * jnp.eye(m, dtype=J.dtype)
-    # (A⁻¹ J)ᵀ = Jᵀ A⁻¹ since A is symmetric.
-    out = jnp.swapaxes(jnp.linalg.solve(A, J), -1, -2)
+    m, n = J.shape[-2], J.shape[-1]
+    Jt = jnp.swapaxes(J, -1, -2)
+    if m > n:
+        A = Jt @ J + (damping * damping) * jnp.eye(n, dtype=J.dtype)
+        out = jnp.linalg.solve(A, Jt)
+    else:
+        A = J @ Jt + (damping * damping) * jnp.eye(m, dtype=J.dtype)
+        # (A⁻¹ J)ᵀ = Jᵀ A⁻¹ since A is symmetric.
+        out = jnp.swapaxes(jnp.linalg.solve(A, J), -1, -2)
     # Singular to working precision (σ_min/σ_max of J below ~3e-7): NaN, not a huge finite number
     # that round-off happened to leave invertible.
     w = jnp.linalg.eigvalsh(A)
@@ -142,8 +151,11 @@ def pseudo_inverse(J: Array, damping: float | Array = 0.0) -> Array:
 
 
 def manipulability(J: Array) -> Array:
-    """Yoshikawa's manipulability √det(JJᵀ) of (..., m, n) Jacobians: 0 at a singularity."""
-    A = J @ jnp.swapaxes(J, -1, -2)
+    """Yoshikawa's manipulability √det(JJᵀ) of (..., m, n) Jacobians, √det(JᵀJ) when m > n (fewer
+    joints than rows, where det(JJᵀ) is always 0): the product of J's singular values, 0 at a
+    singularity."""
+    Jt = jnp.swapaxes(J, -1, -2)
+    A = Jt @ J if J.shape[-2] > J.shape[-1] else J @ Jt
     sign, logdet = jnp.linalg.slogdet(A)
     return jnp.where(sign > 0, jnp.exp(0.5 * logdet), 0.0)
 
@@ -579,13 +591,14 @@ class Kinematics:
     def pseudo_inverse(
         self, theta: Array, *, frame: FrameName = "world", part: Part = "full", damping: float = 0.0
     ) -> Array:
-        """J*(θ) = Jᵀ(JJᵀ + λ²I)⁻¹ (seed, eq. 7 with λ = ``damping`` = 0).
+        """J*(θ) = Jᵀ(JJᵀ + λ²I)⁻¹ (seed, eq. 7 with λ = ``damping`` = 0); (JᵀJ + λ²I)⁻¹Jᵀ when the
+        chain has fewer joints than the part has rows (see :func:`pseudo_inverse`).
 
         Returns
         -------
         (..., n, m) array
-            J J* = I away from singularities; not finite at one when λ = 0 (see
-            :meth:`damped_pseudo_inverse`).
+            J J* = I (J* J = I for fewer joints than rows) away from singularities; not finite
+            at one when λ = 0 (see :meth:`damped_pseudo_inverse`).
         """
         _check_options(frame, part)
         if not damping >= 0:
@@ -604,7 +617,8 @@ class Kinematics:
         return self.pseudo_inverse(theta, frame=frame, part=part, damping=damping)
 
     def manipulability(self, theta: Array, *, part: Part = "full") -> Array:
-        """(...,) Yoshikawa's √det(JJᵀ): how far from a singularity (0 at one; frame-independent)."""
+        """(...,) Yoshikawa's √det(JJᵀ) (√det(JᵀJ) for fewer joints than rows): how far from a
+        singularity (0 at one; frame-independent)."""
         _check_options("world", part)
 
         def batch(th: Array, p: Part) -> Array:
@@ -842,6 +856,8 @@ class Kinematics:
         Jp = np.asarray(self.pseudo_inverse(theta, frame=frame, part=part, damping=damping))
         w = float(self.manipulability(theta, part=part))
         rows = ROW_NAMES[_PARTS[part]]
+        # fewer joints than rows: JJᵀ is never invertible, J* is the left inverse (least squares)
+        left = self.n < len(rows)
         units = [self._unit(k) for k in range(self.n)]
         lines = [f"{self.label} of {self.model.path}: chain of {self.n} ({'joint axes' if self.fast else 'jacfwd'})"]
         lines.append(
@@ -899,14 +915,21 @@ class Kinematics:
             table(
                 ["J*"] + list(rows),
                 [[name] + _shown(Jp[k], Jp) for k, name in enumerate(self.joints)],
-                title=f"\nJ* = Jᵀ(JJᵀ{' + λ²I' if damping else ''})⁻¹ of the {part} rows"
-                + (f", λ = {fmt(damping)}" if damping else ""),
+                title=f"\nJ* = {_formula(left, damping)} of the {part} rows"
+                + (f", λ = {fmt(damping)}" if damping else "")
+                + (
+                    f" — the chain has fewer joints ({self.n}) than rows ({len(rows)}): J* is the least-squares "
+                    "joint step, J* J = I (J J* = I cannot hold)"
+                    if left
+                    else ""
+                ),
             )
         )
         singular = not np.all(np.isfinite(Jp))
+        gram = "JᵀJ" if left else "JJᵀ"
         lines.append(
-            f"\nmanipulability √det(JJᵀ) ({part}): {fmt(w)}"
-            + ("  — singular: JJᵀ cannot be inverted (give a damping)" if singular else "")
+            f"\nmanipulability √det({gram}) ({part}): {fmt(w)}"
+            + (f"  — singular: {gram} cannot be inverted (give a damping)" if singular else "")
         )
         data: dict[str, Any] = {
             "model": self.model.path,
@@ -939,6 +962,7 @@ class Kinematics:
             "pseudo_inverse": {
                 "part": part,
                 "damping": damping,
+                "inverse": "left" if left else "right",
                 "rows": list(self.joints),
                 "columns": list(rows),
                 "matrix": _json_matrix(Jp),
@@ -1375,6 +1399,12 @@ def _wrap(theta: np.ndarray, periodic: np.ndarray) -> np.ndarray:
     """The variables the pose has period 2π in (:func:`_periodic`, no limits) brought into (−π, π]."""
     wrapped = np.pi - np.mod(np.pi - theta, 2.0 * np.pi)
     return np.where(periodic, wrapped, theta)
+
+
+def _formula(left: bool, damping: float) -> str:
+    """J*'s formula as the report writes it: the right inverse, or the left one (fewer joints than rows)."""
+    plus = " + λ²I" if damping else ""
+    return f"(JᵀJ{plus})⁻¹Jᵀ" if left else f"Jᵀ(JJᵀ{plus})⁻¹"
 
 
 def _rotvec(R: np.ndarray) -> np.ndarray:

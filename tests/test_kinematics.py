@@ -303,6 +303,38 @@ def test_the_pure_functions_of_j():
     assert float(manipulability(np.array([[1.0, 0.0], [2.0, 0.0]]))) == 0.0
 
 
+def test_a_chain_with_fewer_joints_than_rows_gets_the_least_squares_inverse(seed_model, capsys):
+    """Two joints for three position rows: JJᵀ (3 × 3, rank 2) is never invertible, and every
+    configuration was called singular ('give a damping'), exit 1."""
+    J = np.array([[1.0, 0.5], [0.0, 2.0], [3.0, -1.0]])
+    np.testing.assert_allclose(np.asarray(pseudo_inverse(J)), np.linalg.pinv(J), atol=1e-14)
+    np.testing.assert_allclose(np.asarray(pseudo_inverse(J, 0.3)), J.T @ np.linalg.inv(J @ J.T + 0.09 * np.eye(3)))
+    assert float(manipulability(J)) == pytest.approx(np.prod(np.linalg.svd(J, compute_uv=False)), rel=1e-14)
+    assert not np.isfinite(np.asarray(pseudo_inverse(np.array([[1.0, 2.0], [2.0, 4.0], [0.0, 0.0]])))).any()
+    short = Kinematics(seed_model, "hand.tip", chain="arm.q1,arm.q2")
+    q = np.radians([-30.0, 20.0])
+    Jp = np.asarray(short.jacobian(q, part="position"))
+    L = np.asarray(short.pseudo_inverse(q, part="position"))
+    np.testing.assert_allclose(L, np.linalg.pinv(Jp), atol=1e-12)
+    np.testing.assert_allclose(L @ Jp, np.eye(2), atol=1e-12)
+    w = float(short.manipulability(q, part="position"))
+    assert w == pytest.approx(np.prod(np.linalg.svd(Jp, compute_uv=False)), rel=1e-12) and w > 0.1
+    text, data = short.report(q)
+    assert not data["singular"] and data["pseudo_inverse"]["inverse"] == "left"
+    assert "J* = (JᵀJ)⁻¹Jᵀ of the position rows — the chain has fewer joints (2) than rows (3)" in text
+    assert "manipulability √det(JᵀJ)" in text and "singular" not in text
+    argv = ["kinematics", str(MODELS / "arm7.mdl"), "--point", "hand.tip", "--chain", "arm.q1,arm.q2"]
+    assert main([*argv, "--joints=-30deg,20deg"]) == 0
+    assert "least-squares joint step" in capsys.readouterr().out
+    # seven joints for six rows: the seed's right inverse, as before
+    assert (
+        Kinematics(seed_model, "hand.tip", chain="arm.q*").report(np.radians([10, -30, 0, -60, 0, 20, 0]))[1][
+            "pseudo_inverse"
+        ]["inverse"]
+        == "right"
+    )
+
+
 # ---- inverse kinematics -------------------------------------------------------------------------------------
 
 
