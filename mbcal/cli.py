@@ -925,9 +925,16 @@ def cmd_kinematics(args: argparse.Namespace) -> int:
 
     _check_outputs(args, [args.model])
     model = _load(args.model, args, [args.model])
-    kin = Kinematics(
-        model, args.point, chain=args.chain, values=_check_values(model, parse_assignments(args.set or [], model))
-    )
+    values = _check_values(model, parse_assignments(args.set or [], model))
+    kin = Kinematics(model, args.point, chain=args.chain, values=values)
+    if args.joints:  # --joints gives every chain variable: a --set of one was dropped in silence
+        for key in values:
+            held = [name for name in model.match_params(key.split("@", 1)[0]) if name in kin.joints]
+            if held:
+                raise MbcalError(
+                    f"--set {key} gives the chain variable {held[0]}, which --joints gives too",
+                    hint="give its value in --joints (without --joints, the chain starts at the --set values)",
+                )
     meant = [(name, model.param(name).given_dim) for name in kin.joints]  # as --set reads them
     theta = np.asarray(_quantities(args.joints, "--joints", meant)) if args.joints else kin.theta0
     if len(theta) != kin.n:
@@ -1319,8 +1326,8 @@ def _register_commands(sub) -> None:
     p.add_argument(
         "--chain",
         metavar="NAMES",
-        help="the joint variables, comma-separated: parameter names, globs ('arm.q*') or frames with a joint; "
-        "default: every joint between the world and the point",
+        help="the joint variables, comma-separated: parameter names, globs ('arm.q*'), frames with a joint or "
+        "joints J for their reading J.q (a URDF's joint names); default: every joint between the world and the point",
     )
     p.add_argument(
         "--joints", metavar="Q1,Q2,...", help="joint values in chain order (30deg, 0.1); default: the model's values"

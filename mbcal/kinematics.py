@@ -227,8 +227,9 @@ class Kinematics:
         A point (``hand.tip``) or a frame (``link7``); full names or unique dotted suffixes.
     chain : str or sequence of str, optional
         The joint variables θ, in order: parameter names, globs (``arm.q*``, expanded in the
-        model's order) or names of frames with a joint (their reading).  A string may list
-        several, separated by commas.  Default: the readings of every joint between the world
+        model's order), names of frames with a joint (their reading) or of joints ``J`` whose
+        reading is ``J.q`` (a URDF's joint names).  A string may list several, separated by
+        commas.  Default: the readings of every joint between the world
         and the target, from the root outwards.
     values : mapping or (n_params,) array, optional
         The values of all other parameters (SI units, by name; the rest nominal) — for example a
@@ -1217,6 +1218,8 @@ def _resolve_chain(
         for f in model.frames
         if f.joint is not None and isinstance(f.joint.q, ParamRef)  # a frame with a joint stands for its reading
     }
+    # the readings 'J.q' of joints: 'J' names its joint's reading (a URDF's own joint names)
+    readings = {f.joint.q.name for f in model.frames if f.joint is not None and isinstance(f.joint.q, ParamRef)}
     for item in items:
         if model.has("param", item):
             names.append(item)
@@ -1233,11 +1236,28 @@ def _resolve_chain(
             if "ambiguous" in err.message:
                 raise
             f = -1
-        if f >= 0 and model.frames[f].name in joint_frames:
-            names.append(joint_frames[model.frames[f].name])
+        by_frame = joint_frames.get(model.frames[f].name) if f >= 0 else None
+        by_joint = f"{item}.q" if f"{item}.q" in readings else None
+        if by_frame is not None and by_joint is not None and by_frame != by_joint:
+            raise UnknownNameError(
+                f"the chain name '{item}' is ambiguous: the reading of frame {model.frames[f].name}'s joint "
+                f"({by_frame}) or the joint reading {by_joint}",
+                hint=f"name the parameter: {by_frame} or {by_joint}",
+            )
+        if by_frame is not None or by_joint is not None:
+            names.append(by_frame or by_joint or "")
             continue
-        hint = suggest(item, list(model.names("param")) + list(joint_frames))
-        raise UnknownNameError(f"the chain names '{item}', which is neither a parameter nor a joint's frame", hint=hint)
+        follows = _follows(model, item, f)
+        if follows is not None:
+            raise UnknownNameError(
+                f"the chain names '{item}', a joint without a reading of its own",
+                hint=f"it follows {follows}: name that" if follows else "it is held at a constant value",
+            )
+        hint = suggest(item, sorted(readings) + list(joint_frames)) or suggest(item, model.names("param"))
+        raise UnknownNameError(
+            f"the chain names '{item}', which is neither a parameter, a joint's frame nor a joint (J for J.q)",
+            hint=hint,
+        )
     seen: set[str] = set()
     for name in names:
         if name in seen:
@@ -1254,6 +1274,19 @@ def _resolve_chain(
                 hint=f"the joint variables between the world and '{target}': {between}",
             )
     return names
+
+
+def _follows(model: Model, item: str, frame: int) -> str | None:
+    """For a chain item that names a joint without a reading of its own (a URDF ``<mimic>``, by its
+    name or its frame's): the parameters it follows."""
+    for f, info in enumerate(model.frames):
+        joint = info.joint
+        if joint is None or isinstance(joint.q, ParamRef):
+            continue
+        own = isinstance(joint.offset, ParamRef) and joint.offset.name == f"{item}.offset"
+        if f == frame or own:
+            return ", ".join(model.params[i].name for i in sorted(depends_on(joint.q)))
+    return None
 
 
 def _limits(model: Model, joints: Sequence[str], path: Sequence[int]) -> tuple[np.ndarray, np.ndarray, list[str]]:

@@ -587,6 +587,35 @@ def test_located_errors_with_suggestions(seed_model, seed_arm):
         seed_arm.ik([1.0, 2.0])
 
 
+def test_a_urdfs_own_joint_names_name_their_readings(urdf_model, tmp_path, write_model):
+    """'--chain joint1,joint2' of a URDF said "did you mean 'joint1.z', 'joint1.y', 'joint1.x'?"."""
+    assert Kinematics(urdf_model, "tool_center", chain="joint1,joint2").joints == ["joint1.q", "joint2.q"]
+    assert Kinematics(urdf_model, "tool_center", chain=["joint3", "joint1.q"]).joints == ["joint3.q", "joint1.q"]
+    with pytest.raises(UnknownNameError, match="'joint8', which is neither") as err:
+        Kinematics(urdf_model, "tool_center", chain="joint1,joint8")
+    assert "did you mean 'joint7.q'" in str(err.value)
+    with pytest.raises(UnknownNameError, match="did you mean 'joint2.q'"):
+        Kinematics(urdf_model, "tool_center", chain="jiont2")
+    # a <mimic> joint has no reading: what it follows is said
+    path = tmp_path / "mix.urdf"
+    path.write_text(MIX, encoding="utf-8")
+    for name in ("j3", "c"):  # the joint's name, its link's
+        with pytest.raises(UnknownNameError, match=f"'{name}', a joint without a reading of its own") as err:
+            Kinematics(mbcal.load_model(path), "d", what="frame", chain=name)
+        assert "it follows j1.q" in str(err.value)
+    # a frame whose joint reads p, beside a reading x.q of another joint: 'x' is ambiguous
+    model = mbcal.load_model(
+        write_model(
+            "param p = 0 deg per configuration\nparam x.q = 0 deg per configuration\n"
+            "object x at (0, 0, 0) {\n  joint revolute(z, p)\n  object y at (0.1 m, 0, 0) {\n"
+            "    joint revolute(z, x.q)\n    point tip = (0.1 m, 0, 0)\n  }\n}\n"
+        )
+    )
+    with pytest.raises(UnknownNameError, match="'x' is ambiguous.*p.*x.q"):
+        Kinematics(model, "tip", chain="x")
+    assert Kinematics(model, "tip", chain="y").joints == ["x.q"]
+
+
 # ---- the command --------------------------------------------------------------------------------------------
 
 
@@ -599,6 +628,18 @@ def test_the_command_prints_f_j_and_j_star(capsys):
     assert code == 0
     for text in ("hand.tip of", "f(θ): position", "J (world axes", "J* = Jᵀ(JJᵀ)⁻¹ of the position rows", "arm.q7"):
         assert text in out, text
+
+
+def test_the_command_refuses_set_of_a_chain_variable_beside_joints(capsys):
+    """'--set arm.q1=5deg' with '--joints' was dropped in silence (θ came from --joints)."""
+    argv = ["kinematics", str(MODELS / "arm7.mdl"), "--point", "hand.tip", "--chain", "arm.q1,arm.q2"]
+    assert main([*argv, "--joints=-30deg,20deg", "--set", "arm.q1=5deg"]) == 2
+    assert "--set arm.q1 gives the chain variable arm.q1, which --joints gives too" in capsys.readouterr().err
+    # without --joints the chain starts at the --set value; other parameters are held as given
+    assert main([*argv, "--set", "arm.q1=5deg", "--json", "-", "-q"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert [row["value"] for row in data["chain"]] == pytest.approx([np.radians(5.0), 0.0])
+    assert main([*argv, "--joints=-30deg,20deg", "--set", "arm.offset4=2deg", "-q"]) == 0
 
 
 @pytest.mark.slow

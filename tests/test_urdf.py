@@ -400,6 +400,38 @@ def test_a_cycle_or_a_second_root_is_an_error_at_a_line_of_it(tmp_path):
         mbcal.load_model(write(tmp_path, links + "</robot>\n"))
 
 
+def test_a_revolute_or_prismatic_joint_without_limit_is_an_error_at_its_line(tmp_path):
+    """URDF requires <limit> for both (urdfdom refuses the file); the joint was read as unlimited,
+    and inverse kinematics turned it anywhere."""
+    joint = '  <joint name="j" type="{}">\n    <parent link="a"/>\n    <child link="b"/>\n{}  </joint>\n</robot>\n'
+    links = '<robot name="r">\n  <link name="a"/>\n  <link name="b"/>\n'
+    limit = '    <limit lower="-1" upper="1" effort="1" velocity="1"/>\n'
+    for kind in ("revolute", "prismatic"):
+        with pytest.raises(MdlError, match=rf"bad\.urdf:4:3: joint 'j' is {kind} but has no <limit>") as err:
+            mbcal.load_model(write(tmp_path, links + joint.format(kind, "")))
+        assert "add <limit" in str(err.value) and ("continuous" in str(err.value)) == (kind == "revolute")
+        assert mbcal.load_model(write(tmp_path, links + joint.format(kind, limit))) is not None
+    assert mbcal.load_model(write(tmp_path, links + joint.format("continuous", ""))) is not None
+
+
+def test_a_mimic_of_a_joint_that_does_not_exist_says_so_at_the_mimic(tmp_path):
+    """It said 'which is not a moving joint without <mimic>', at the joint's line."""
+    text = SMALL.replace('<mimic joint="link"', '<mimic joint="lnik"')
+    path = write(tmp_path, text)
+    with pytest.raises(MdlError) as err:
+        mbcal.load_model(path)
+    line = next(k for k, row in enumerate(text.splitlines(), 1) if "<mimic" in row)
+    assert str(err.value).startswith(f"{path}:{line}:5: joint 'follow' mimics 'lnik', which does not exist")
+    assert "did you mean 'link'?" in str(err.value)
+    # one that exists but cannot be followed: why, at the <mimic> too
+    with pytest.raises(MdlError, match=rf"{line}:5: joint 'follow' mimics 'spin', which mimics 'link' itself"):
+        mbcal.load_model(
+            write(tmp_path, SMALL.replace('<mimic joint="link"', '<mimic joint="spin"').replace(
+                '<origin xyz="0 0.05 0"/>', '<origin xyz="0 0.05 0"/><mimic joint="link"/>'
+            ))
+        )  # fmt: skip
+
+
 def test_mbcal_check_reads_a_urdf():
     done = subprocess.run(
         [sys.executable, "-m", "mbcal", "check", str(ARM)], capture_output=True, text=True, timeout=300

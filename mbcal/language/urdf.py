@@ -24,7 +24,8 @@ Reading
   upper = ...)`` with the URDF axis and limits.  A ``<mimic>`` joint moves by
   ``multiplier · (the other joint's reading) + offset`` and has an ``offset`` parameter but no
   reading.  Fixed joints have origin parameters but no joint statement; floating and planar
-  joints are refused (:class:`UrdfError` naming the joint).
+  joints are refused (:class:`UrdfError` naming the joint), and so is a revolute or prismatic
+  joint without ``<limit>`` (URDF requires one; urdfdom refuses the file too).
 * every ``<visual>`` as a ``shape`` (box, cylinder, sphere, mesh) at its constant origin.
   URDF cylinders are centred with their axis along z, as mbcal's.  What cannot be shown (a
   mesh file that cannot be found or read, a non-positive size) is left out with a comment:
@@ -54,7 +55,7 @@ from typing import Any
 
 import numpy as np
 
-from mbcal.errors import MeshError, SourceSpan, UrdfError
+from mbcal.errors import MeshError, SourceSpan, UrdfError, suggest
 from mbcal.geometry.shapes import get_shape, shape_kinds
 from mbcal.language import files
 from mbcal.language.meshes import MESH_SUFFIXES, load_mesh
@@ -103,10 +104,15 @@ class _Robot:
         return SourceSpan.at_offset(str(self.path), text, offset)
 
     def error(
-        self, message: str, kind: str | None = None, name: str | None = None, part: str | None = None
+        self,
+        message: str,
+        kind: str | None = None,
+        name: str | None = None,
+        part: str | None = None,
+        hint: str | None = None,
     ) -> UrdfError:
         span = self.span(kind, name, part) if kind and name is not None else None
-        return UrdfError(message if span else f"{self.path}: {message}", span)
+        return UrdfError(message if span else f"{self.path}: {message}", span, hint)
 
 
 def _source_text(path: Path) -> str:
@@ -244,6 +250,16 @@ def read_robot(path: str | os.PathLike[str]) -> _Robot:
                     f"joint '{joint.name}': its <axis> must be a finite, non-zero vector", "joint", joint.name, "axis"
                 )
         limit = joint.limit
+        if limit is None and joint.type in ("revolute", "prismatic"):
+            # URDF requires it (urdfdom refuses the file); read as no limits, IK went anywhere
+            raise robot.error(
+                f"joint '{joint.name}' is {joint.type} but has no <limit> (URDF requires one for revolute and "
+                "prismatic joints)",
+                "joint",
+                joint.name,
+                hint='add <limit lower="..." upper="..." effort="..." velocity="..."/>'
+                + (', or make it type="continuous" if it turns without limits' if joint.type == "revolute" else ""),
+            )
         if limit is not None and joint.type in ("revolute", "prismatic"):
             low, high = (getattr(limit, side, None) for side in ("lower", "upper"))
             if low is not None and high is not None and not (np.isfinite(low) and np.isfinite(high) and low <= high):
@@ -293,11 +309,23 @@ def read_robot(path: str | os.PathLike[str]) -> _Robot:
     for joint in urdf.robot.joints:
         if joint.mimic is not None:
             other = joints_by_name.get(joint.mimic.joint)
-            if other is None or other.type not in MOVING or other.mimic is not None:
+            if other is None:
                 raise robot.error(
-                    f"joint '{joint.name}' mimics '{joint.mimic.joint}', which is not a moving joint without <mimic>",
+                    f"joint '{joint.name}' mimics '{joint.mimic.joint}', which does not exist",
                     "joint",
                     joint.name,
+                    "mimic",
+                    hint=suggest(str(joint.mimic.joint), [j for j in joints_by_name if j != joint.name])
+                    or f"the robot's joints: {', '.join(joints_by_name)}",
+                )
+            if other.type not in MOVING or other.mimic is not None:
+                why = f"is {other.type}" if other.type not in MOVING else f"mimics '{other.mimic.joint}' itself"
+                raise robot.error(
+                    f"joint '{joint.name}' mimics '{other.name}', which {why}: a mimic joint follows a moving joint "
+                    "without <mimic>",
+                    "joint",
+                    joint.name,
+                    "mimic",
                 )
             if joint.type not in MOVING:
                 raise robot.error(f"joint '{joint.name}' is {joint.type} but has <mimic>", "joint", joint.name)
