@@ -173,6 +173,26 @@ def test_export_leaves_joints_without_estimates_untouched_and_never_overwrites_i
         write_urdf({"joint1.offset": 0.01}, ARM, ARM)
 
 
+def test_write_model_of_a_urdf_robot_writes_a_urdf_and_the_guide_says_so(arm, tmp_path):
+    """docs/urdf.md's Limitations said write_model writes .mdl text ('for a robot read from a URDF
+    use write_urdf'); what CalibrationResult.write_model calls writes the calibrated URDF for a
+    .urdf name, and .mdl text with overrides for any other."""
+    from mbcal.export.mdl import write_calibrated_model  # what CalibrationResult.write_model calls
+
+    write_calibrated_model(arm, CALIBRATED, tmp_path / "via_model.urdf")
+    write_urdf(CALIBRATED, ARM, tmp_path / "direct.urdf")
+    text = (tmp_path / "via_model.urdf").read_text(encoding="utf-8")
+    assert text.count("folded in") == 4 and text.startswith("<?xml")  # the four offsets
+    q = readings(np.random.default_rng(3))
+    assert_same_poses(urdf_fk(tmp_path / "via_model.urdf", q, LINKS), urdf_fk(tmp_path / "direct.urdf", q, LINKS))
+    write_calibrated_model(arm, CALIBRATED, tmp_path / "via_model.mdl")
+    again = mbcal.load_model(tmp_path / "via_model.mdl")
+    assert again.param("joint3.offset").nominal == pytest.approx(CALIBRATED["joint3.offset"], abs=1e-12)
+    guide = (ROOT / "docs" / "urdf.md").read_text(encoding="utf-8")
+    assert "`CalibrationResult.write_model` writes `.mdl` text" not in guide
+    assert "`result.write_model(path)` (and `mbcal solve --write-model PATH`) does the same" in guide
+
+
 # ---- a calibration through the library ------------------------------------------------------------
 
 
