@@ -615,7 +615,9 @@ def _neighbour_sums(uv: np.ndarray, res: np.ndarray) -> np.ndarray:
     return np.stack([np.bincount(v, w, minlength=views) for w in (prod, prod * prod, mean, np.ones_like(prod))], axis=1)
 
 
-def systematic_residuals(problem: Problem, r: np.ndarray, threshold: float = DEFAULT_THRESHOLD) -> list[Suspect]:
+def systematic_residuals(
+    problem: Problem, r: np.ndarray, threshold: float = DEFAULT_THRESHOLD, exclude: Sequence[int] = ()
+) -> list[Suspect]:
     """Cameras whose image points are off alike where they lie close together in the image.
 
     The χ² test judges the size of the residuals against the stated σ; stated larger than the
@@ -630,8 +632,11 @@ def systematic_residuals(problem: Problem, r: np.ndarray, threshold: float = DEF
     leverage only lowers it.  A camera is named when T is significant (one-sided,
     Bonferroni-corrected for the cameras), the neighbours' correlation Σ rᵢ·rⱼ / Σ ½(|rᵢ|² + |rⱼ|²)
     is at least :data:`SYSTEMATIC_MIN_CORRELATION` and the shared part at least
-    :data:`SYSTEMATIC_MIN_SIZE` σ.  Measured on the corners ``mbcal detect`` finds in the 5 photos
-    of Zhang's set: T = −2.0 with OpenCV's distortion model, 26 without it (docs/report.md).
+    :data:`SYSTEMATIC_MIN_SIZE` σ.  ``exclude``: measurements (their indices) left out — the
+    outliers the fit verdict found, which a patch of neighbouring mis-detections would otherwise
+    make look like a field; a view of 4 points or fewer is not tested.  Measured on the corners
+    ``mbcal detect`` finds in the 5 photos of Zhang's set: T = −2.0 with OpenCV's distortion model,
+    26 without it (docs/report.md).
     """
     ms = problem.measurements.measurements
     columns = problem.measurements.columns().kinds
@@ -645,6 +650,8 @@ def systematic_residuals(problem: Problem, r: np.ndarray, threshold: float = DEF
         cameras, camera_code = col.refs.get("camera", ([g.model.kind], np.zeros(len(col.members), dtype=np.int64)))
         view = camera_code * (int(col.config.max(initial=0)) + 1) + col.config  # a camera in a configuration
         usable = col.has_value & np.all(np.isfinite(col.values), axis=1) & np.all(np.isfinite(res_all), axis=1)
+        if len(exclude):
+            usable &= ~np.isin(col.members, np.asarray(exclude, dtype=np.int64))
         order = np.nonzero(usable)[0]
         order = order[np.argsort(view[order], kind="stable")]
         cut = np.flatnonzero(np.diff(view[order])) + 1
@@ -998,6 +1005,13 @@ def assess_fit(
             )
         )
     suspects.sort(key=lambda s: -s.excess)
+    if outlier_set:
+        # A patch of neighbouring outliers would look like a field: with a robust loss (its estimate
+        # not pulled by them) the rest is tested without them; a plain least-squares estimate is
+        # pulled by them, its other residuals too — the field is judged on the robust fit the
+        # report then recommends.
+        found = systematic_residuals(problem, r, alpha, exclude=sorted(outlier_set)) if robust else []
+        common["systematic"] = tuple(found)
     notes: list[str] = []
     if robust:
         # The robust loss was asked to ignore outliers: the test covers what is left.
