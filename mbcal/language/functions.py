@@ -504,8 +504,9 @@ def look_at_problem(eye: Any, target: Any, up: Any) -> tuple[str, str | None] | 
     and, for arguments that depend on parameters, at the nominal values
     (:func:`mbcal.language.check.check_at_nominal`)."""
     eye, target, up = (np.asarray(v, dtype=float) for v in (eye, target, up))
-    view = target - eye
-    n, m = float(np.linalg.norm(view)), float(np.linalg.norm(up))
+    with np.errstate(over="ignore", invalid="ignore"):  # 1e308 m: not this check's to report
+        view = target - eye
+        n, m = float(np.linalg.norm(view)), float(np.linalg.norm(up))
     if not (np.isfinite(n) and np.isfinite(m) and m > 0):
         return None
     if n == 0:
