@@ -600,19 +600,24 @@ def _neighbour_sums(uv: np.ndarray, res: np.ndarray) -> np.ndarray:
     """For views of n image points each (``uv``, ``res``: (views, n, 2)): each view's pairs of
     :data:`SYSTEMATIC_NEIGHBOURS` nearest points, each pair once, summed per view — (views, 4):
     Σ rᵢ·rⱼ, Σ (rᵢ·rⱼ)², Σ ½(|rᵢ|² + |rⱼ|²) and the number of pairs."""
-    views, n = uv.shape[:2]
-    k = SYSTEMATIC_NEIGHBOURS
+    n = uv.shape[1]
     d = (uv[:, :, None, 0] - uv[:, None, :, 0]) ** 2 + (uv[:, :, None, 1] - uv[:, None, :, 1]) ** 2
     d[:, np.arange(n), np.arange(n)] = np.inf
-    near = np.argpartition(d, k - 1, axis=2)[:, :, :k].reshape(views, n * k)
-    first = np.repeat(np.arange(n), k)[None, :]
-    key = (np.arange(views)[:, None] * n + np.minimum(first, near)) * n + np.maximum(first, near)
-    pair = np.unique(key)  # each pair once, whichever of its points found the other
-    v, a, b = pair // (n * n), pair // n % n, pair % n
-    prod = np.einsum("ij,ij->i", res[v, a], res[v, b])
-    square = np.einsum("vij,vij->vi", res, res)
-    mean = 0.5 * (square[v, a] + square[v, b])
-    return np.stack([np.bincount(v, w, minlength=views) for w in (prod, prod * prod, mean, np.ones_like(prod))], axis=1)
+    kth = np.partition(d, SYSTEMATIC_NEIGHBOURS - 1, axis=2)[:, :, SYSTEMATIC_NEIGHBOURS - 1 : SYSTEMATIC_NEIGHBOURS]
+    near = d <= kth  # each point's nearest (ties at the k-th distance all count)
+    pair = np.triu(near | np.swapaxes(near, 1, 2), 1)  # a pair once, whichever of its points found it
+    prod = np.einsum("vik,vjk->vij", res, res)
+    square = np.einsum("vik,vik->vi", res, res)
+    mean = 0.5 * (square[:, :, None] + square[:, None, :])
+    return np.stack(
+        [
+            np.sum(prod, axis=(1, 2), where=pair),
+            np.sum(prod * prod, axis=(1, 2), where=pair),
+            np.sum(mean, axis=(1, 2), where=pair),
+            np.sum(pair, axis=(1, 2)),
+        ],
+        axis=1,
+    )
 
 
 def systematic_residuals(
