@@ -596,6 +596,9 @@ class _Linear:
         return t, d
 
 
+_DENSE_VIEW = 1000  # views of more points are paired a slice of rows at a time
+
+
 def _neighbour_sums(uv: np.ndarray, res: np.ndarray) -> np.ndarray:
     """For views of n image points each (``uv``, ``res``: (views, n, 2)): each view's pairs of
     :data:`SYSTEMATIC_NEIGHBOURS` nearest points, each pair once, summed per view — (views, 4):
@@ -618,6 +621,25 @@ def _neighbour_sums(uv: np.ndarray, res: np.ndarray) -> np.ndarray:
         ],
         axis=1,
     )
+
+
+def _neighbour_sums_large(uv: np.ndarray, res: np.ndarray) -> np.ndarray:
+    """:func:`_neighbour_sums` of one view of many points (``uv``, ``res``: (n, 2)), its distances a
+    slice of rows at a time (an n × n matrix of a view of 10,000 points would be 800 MB)."""
+    n, k = len(uv), SYSTEMATIC_NEIGHBOURS
+    near = np.empty((n, k), dtype=np.int64)
+    for start in range(0, n, 256):
+        d = (uv[start : start + 256, None, 0] - uv[None, :, 0]) ** 2 + (
+            uv[start : start + 256, None, 1] - uv[None, :, 1]
+        ) ** 2
+        d[np.arange(len(d)), start + np.arange(len(d))] = np.inf
+        near[start : start + 256] = np.argpartition(d, k - 1, axis=1)[:, :k]
+    first = np.repeat(np.arange(n), k)
+    pair = np.unique(np.minimum(first, near.ravel()) * n + np.maximum(first, near.ravel()))  # each once
+    a, b = pair // n, pair % n
+    prod = np.einsum("ij,ij->i", res[a], res[b])
+    square = np.einsum("ij,ij->i", res, res)
+    return np.array([[prod.sum(), prod @ prod, 0.5 * (square[a].sum() + square[b].sum()), len(prod)]])
 
 
 def systematic_residuals(
@@ -664,10 +686,13 @@ def systematic_residuals(
         for n in np.unique(sizes[sizes > SYSTEMATIC_NEIGHBOURS]).tolist():
             # the views with n points, a batch at a time: (views, n, n) distances of at most ~4 M values
             starts = np.concatenate([[0], cut])[sizes == n]
-            per = max(1, 4_000_000 // (n * n))
+            per = max(1, 4_000_000 // (n * n))  # 1 beyond _DENSE_VIEW points
             for b0 in range(0, len(starts), per):
                 at = order[starts[b0 : b0 + per, None] + np.arange(n)]  # (views, n) rows of col
-                sums = _neighbour_sums(col.values[at], res_all[at])
+                if n > _DENSE_VIEW:
+                    sums = _neighbour_sums_large(col.values[at[0]], res_all[at[0]])
+                else:
+                    sums = _neighbour_sums(col.values[at], res_all[at])
                 for rows, view_sums in zip(at, sums):
                     name = cameras[camera_code[rows[0]]]
                     totals[name] = totals.get(name, np.zeros(4)) + view_sums

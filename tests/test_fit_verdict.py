@@ -641,3 +641,14 @@ def test_a_patch_of_outliers_a_robust_loss_sets_aside_is_no_systematic_field():
     wrong = _corners(full, 0.06, stated=0.5)
     verdict = calibrate_cameras(plain, mbcal.measurements_from_records(wrong, plain), config=SolverConfig(loss="huber"))
     assert [s.subject for s in verdict.result.verdict.systematic] == ["camera cam"]
+
+
+def test_a_view_of_many_points_is_paired_a_slice_at_a_time_with_the_same_sums():
+    """The dense pairing holds (views, n, n) arrays: a view of 10,000 points would take ~800 MB
+    each, so views beyond _DENSE_VIEW points are paired by slices of rows, to the same sums."""
+    from mbcal.fit import _neighbour_sums, _neighbour_sums_large
+
+    rng = np.random.default_rng(0)
+    uv = rng.uniform(0.0, 640.0, (700, 2))
+    res = rng.normal(size=(700, 2)) + 0.5 * np.sin(uv / 100.0)
+    np.testing.assert_allclose(_neighbour_sums_large(uv, res)[0], _neighbour_sums(uv[None], res[None])[0], rtol=1e-12)
