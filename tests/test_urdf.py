@@ -534,3 +534,28 @@ def test_a_start_tag_split_over_lines_is_located_at_its_opening(tmp_path):
     with pytest.raises(mbcal.MbcalError) as info:
         mbcal.load_model(path)
     assert str(info.value).startswith(f"{path}:4:1: joint 'j1' refers to a missing child link 'l2'"), str(info.value)
+
+
+def test_a_limit_without_lower_or_upper_takes_urdfs_default_of_zero(tmp_path):
+    """URDF's lower and upper default to 0 (urdfdom reads them so); a missing side was read as no
+    limit, so inverse kinematics could turn the joint where the robot cannot."""
+    from mbcal.kinematics import Kinematics
+
+    joint = (
+        '  <joint name="j" type="revolute">\n    <parent link="a"/>\n    <child link="b"/>\n'
+        '    <axis xyz="0 0 1"/>\n    <limit {} effort="1" velocity="1"/>\n  </joint>\n'
+    )
+    tip = (
+        '  <joint name="t" type="fixed">\n    <parent link="b"/>\n    <child link="c"/>\n'
+        '    <origin xyz="1 0 0"/>\n  </joint>\n'
+    )
+    links = '<robot name="r">\n  <link name="a"/>\n  <link name="b"/>\n  <link name="c"/>\n'
+    for attributes, low, high in (('upper="1"', 0.0, 1.0), ('lower="-1"', -1.0, 0.0), ("", 0.0, 0.0)):
+        path = write(tmp_path, links + joint.format(attributes) + tip + "</robot>\n")
+        text = urdf_to_mdl(path)
+        assert "<limit> has no" in text and ("cannot move" in text) == (low == high)
+        kin = Kinematics(mbcal.load_model(path), "c.origin")
+        assert (kin.lower[0], kin.upper[0]) == pytest.approx((low, high))
+    # an upper below the defaulted lower is the same error as one written out
+    with pytest.raises(MdlError, match=r"must have lower ≤ upper, got lower=0 upper=-1"):
+        mbcal.load_model(write(tmp_path, links + joint.format('upper="-1"') + tip + "</robot>\n"))

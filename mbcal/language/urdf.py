@@ -21,7 +21,8 @@ Reading
   prismatic) — the joint reading, given per configuration in a measurement file — and
   ``param J.offset = 0 deg in [-5 deg, 5 deg]`` (±5 mm for prismatic), the encoder's unknown
   zero; inside the child frame ``joint revolute(AXIS, J.q, offset = J.offset, lower = ...,
-  upper = ...)`` with the URDF axis and limits.  A ``<mimic>`` joint moves by
+  upper = ...)`` with the URDF axis and limits (a ``<limit>`` without ``lower`` or ``upper``
+  has 0 there, URDF's default, said in a comment).  A ``<mimic>`` joint moves by
   ``multiplier · (the other joint's reading) + offset`` and has an ``offset`` parameter but no
   reading.  Fixed joints have origin parameters but no joint statement; floating and planar
   joints are refused (:class:`UrdfError` naming the joint), and so is a revolute or prismatic
@@ -261,8 +262,8 @@ def read_robot(path: str | os.PathLike[str]) -> _Robot:
                 + (', or make it type="continuous" if it turns without limits' if joint.type == "revolute" else ""),
             )
         if limit is not None and joint.type in ("revolute", "prismatic"):
-            low, high = (getattr(limit, side, None) for side in ("lower", "upper"))
-            if low is not None and high is not None and not (np.isfinite(low) and np.isfinite(high) and low <= high):
+            low, high = _limit_values(limit)
+            if not (np.isfinite(low) and np.isfinite(high) and low <= high):
                 raise robot.error(
                     f"joint '{joint.name}': its <limit> must have lower ≤ upper, got lower={low:g} upper={high:g}",
                     "joint",
@@ -522,13 +523,26 @@ def _joint_statement(robot: _Robot, joint, by_name: dict[str, Any]) -> str:
         q = f"{_num(multiplier)} * ({robot.joints[other.name]}.q / (1 {source})) * (1 {unit}) + {_num(shift)} {unit}"
     args = [_axis(joint.axis), q, f"offset = {j}.offset"]
     limit = joint.limit
+    note = ""
     if joint.type != "continuous" and limit is not None:
         show = _length if joint.type == "prismatic" else _angle
-        if limit.lower is not None:
-            args.append(f"lower = {show(limit.lower)}")
-        if limit.upper is not None:
-            args.append(f"upper = {show(limit.upper)}")
-    return f"joint {joint.type}({', '.join(args)})"
+        low, high = _limit_values(limit)
+        args += [f"lower = {show(low)}", f"upper = {show(high)}"]
+        missing = [side for side in ("lower", "upper") if getattr(limit, side, None) is None]
+        if missing:
+            note = f"  # <limit> has no {' or '.join(missing)}: 0, URDF's default"
+            if low == high:
+                note += " (the joint cannot move)"
+    return f"joint {joint.type}({', '.join(args)}){note}"
+
+
+def _limit_values(limit) -> tuple[float, float]:
+    """A ``<limit>``'s lower and upper values, each 0 where the element leaves it out: URDF's
+    default (wiki.ros.org/urdf/XML/joint: "lower (optional, defaults to 0)", the same for
+    upper; urdfdom reads them so, hence every consumer built on it).  Until now a missing side
+    was read as no limit at all."""
+    low, high = (getattr(limit, side, None) for side in ("lower", "upper"))
+    return (0.0 if low is None else float(low), 0.0 if high is None else float(high))
 
 
 def urdf_to_mdl(
