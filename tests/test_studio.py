@@ -647,7 +647,20 @@ def test_an_edit_after_a_solve_keeps_its_result_out_of_the_save(small):
     moved = [dict(c, u=c["u"] + 50.0) if c["id"] == "c0" else c for c in clicks]
     engine.set_session(moved, ["block.x", "block.y"], {}, [])
     assert engine.result is None  # solved from other clicks: not saved beside these
-    assert engine.save("csv")["written"] == ["measurements.csv"] and not (out / "report.json").exists()
+    saved = engine.save("csv")
+    assert saved["written"] == ["measurements.csv"] and not (out / "report.json").exists()
+    assert saved["earlier"] == [] and not any("earlier Save" in note for note in saved["notes"])
+    # A Save of the solved clicks, then an edit and a Save: the earlier report stays (nothing is
+    # removed unasked) and the answer, shown on the page, says it is of other clicks.
+    engine.set_session(clicks, ["block.x", "block.y"], {}, [])
+    engine.start_solve(restarts=2)
+    _solved(engine)
+    assert engine.save("csv")["written"][:3] == ["measurements.csv", "small_calibrated.mdl", "report.json"]
+    engine.set_session(moved, ["block.x", "block.y"], {}, [])
+    saved = engine.save("csv")
+    assert saved["written"] == ["measurements.csv"] and (out / "report.json").exists()
+    assert saved["earlier"][:2] == ["small_calibrated.mdl", "report.json"]
+    assert any("from an earlier Save, of other clicks" in note for note in saved["notes"])
 
 
 def _blocked_solve(monkeypatch):

@@ -929,11 +929,24 @@ class Engine:
             inputs = self.inputs
         with self._save_lock:
             meas = self._target(f"measurements.{fmt}", inputs)
+            suffix = ".urdf" if self.model_path.suffix.lower() == ".urdf" else ".mdl"
             if result is None:
                 with all_or_nothing():
                     write_measurements(data, meas)
-                return {"written": [meas.name], "removed": [], "out": str(self.out), "notes": list(self.notes)}
-            suffix = ".urdf" if self.model_path.suffix.lower() == ".urdf" else ".mdl"
+                # An earlier Save's report, model and overlays stay (nothing is removed unasked), but
+                # they are of other clicks: said, so that no one reads them as these measurements' fit.
+                earlier = [
+                    name
+                    for name in (f"{self.model_path.stem}_calibrated{suffix}", "report.json", "overlays")
+                    if (self.out / name).exists()
+                ]
+                notes = list(self.notes)
+                if earlier:
+                    notes.append(
+                        f"{', '.join(earlier)} in {self.out} are from an earlier Save, of other clicks: "
+                        "Solve, then Save, to replace them"
+                    )
+                return {"written": [meas.name], "removed": [], "earlier": earlier, "out": str(self.out), "notes": notes}
             model_out = self._target(f"{self.model_path.stem}_calibrated{suffix}", inputs)
             report = self._target("report.json", inputs)
             folder = self._target_path("overlays")
@@ -958,7 +971,7 @@ class Engine:
                         stale.unlink()
                         removed.append(f"overlays/{name}")
         written = [meas.name, model_out.name, report.name, *(f"overlays/{name}" for name in drawn)]
-        return {"written": written, "removed": removed, "out": str(self.out), "notes": list(self.notes)}
+        return {"written": written, "removed": removed, "earlier": [], "out": str(self.out), "notes": list(self.notes)}
 
     def _target(self, name: str, inputs: Sequence[Path]) -> Path:
         """An output of Save: under ``--out`` itself, not through a link to elsewhere, not an input."""
