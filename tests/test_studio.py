@@ -777,7 +777,13 @@ def test_save_checks_every_file_before_writing_any(small, tmp_path):
         engine.save("json")
     assert sorted(p.name for p in out.iterdir()) == ["overlays", SESSION_FILE]
     (out / "overlays" / "cam_after.png").unlink()
-    assert engine.save("json")["written"][:3] == ["measurements.json", "small_calibrated.mdl", "report.json"]
+    saved = engine.save("json")
+    assert saved["written"][:3] == ["measurements.json", "small_calibrated.mdl", "report.json"]
+    assert saved["earlier"] == []
+    # a Save in the other format leaves the first file and names it as an earlier Save's
+    saved = engine.save("csv")
+    assert saved["earlier"] == ["measurements.json"] and (out / "measurements.json").exists()
+    assert any("measurements.json" in note and "earlier Save" in note for note in saved["notes"])
 
 
 def test_a_save_removes_the_overlays_an_earlier_save_drew_and_this_one_does_not(small, tmp_path, monkeypatch):

@@ -929,17 +929,16 @@ class Engine:
             inputs = self.inputs
         with self._save_lock:
             meas = self._target(f"measurements.{fmt}", inputs)
+            # the other format's file, from an earlier Save: left as it is, and named in the answer
+            other = "measurements.json" if fmt == "csv" else "measurements.csv"
             suffix = ".urdf" if self.model_path.suffix.lower() == ".urdf" else ".mdl"
             if result is None:
                 with all_or_nothing():
                     write_measurements(data, meas)
                 # An earlier Save's report, model and overlays stay (nothing is removed unasked), but
                 # they are of other clicks: said, so that no one reads them as these measurements' fit.
-                earlier = [
-                    name
-                    for name in (f"{self.model_path.stem}_calibrated{suffix}", "report.json", "overlays")
-                    if (self.out / name).exists()
-                ]
+                names = (other, f"{self.model_path.stem}_calibrated{suffix}", "report.json", "overlays")
+                earlier = [name for name in names if (self.out / name).exists()]
                 notes = list(self.notes)
                 if earlier:
                     notes.append(
@@ -971,7 +970,11 @@ class Engine:
                         stale.unlink()
                         removed.append(f"overlays/{name}")
         written = [meas.name, model_out.name, report.name, *(f"overlays/{name}" for name in drawn)]
-        return {"written": written, "removed": removed, "earlier": [], "out": str(self.out), "notes": list(self.notes)}
+        notes = list(self.notes)
+        earlier = [other] if (self.out / other).exists() else []
+        if earlier:
+            notes.append(f"{other} in {self.out} is from an earlier Save: {meas.name} holds these clicks")
+        return {"written": written, "removed": removed, "earlier": earlier, "out": str(self.out), "notes": notes}
 
     def _target(self, name: str, inputs: Sequence[Path]) -> Path:
         """An output of Save: under ``--out`` itself, not through a link to elsewhere, not an input."""
