@@ -23,7 +23,7 @@ import numpy as np
 from mbcal._jax import jax, release_memory
 from mbcal.errors import SolverError
 from mbcal.errors import suggest as suggest_name
-from mbcal.fit import FitConfig, assess_fit, assess_plan
+from mbcal.fit import FitConfig, assess_fit, assess_plan, distinct_minima
 from mbcal.language.model import Model
 from mbcal.measurements.registry import get_model
 from mbcal.measurements.sets import MeasurementSet, measurements_from_records
@@ -531,6 +531,7 @@ def calibrate(
         config=o.fit,
         observability=observability,
         accept=o.accept_poor_fit,
+        ambiguous=distinct_minima(solved, obs, _units(problem), local=problem.local, scale=chi2),
     )
     return _result(problem, solved, x, x_init, obs, rows, verdict, o, config, t0)
 
@@ -686,6 +687,7 @@ def _calibrate_by_blocks(
         observability=o.observability,
         accept=o.accept_poor_fit,
         linearize=lambda kept: StructuredLinear(structure, r, Jc, kept),
+        ambiguous=distinct_minima(solved, obs, _units(problem), local=problem.local, scale=chi2),
     )
     return _result(problem, solved, x, x_init, obs, rows, verdict, o, config, t0)
 

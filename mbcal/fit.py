@@ -43,6 +43,16 @@ number above :data:`DEFAULT_MAX_CONDITION` makes the result untrustworthy too.  
 search range are tested as well: a distance known to within ± 70 m when its nominal value is 5 m
 is not "well determined".
 
+**Another solution as good** (:func:`distinct_minima`).  Restarts that converged elsewhere with
+S within :data:`AMBIGUOUS_MARGIN` of the best — χ²'s 95 % point for one degree of freedom: the data
+do not prefer the best — at unknowns more than :data:`AMBIGUOUS_SIGMAS` σ from it (two mirror
+poses, an angle whose sign the measurements cannot tell) make the result untrustworthy: the
+estimate's σ describes one of the solutions and says nothing of the other.
+
+**Held at a hard limit.**  An unknown the data push past its ``bounded`` range ends on the limit
+with σ 0: that is the limit, not a measurement of it, so the result is not trustworthy either
+(``accept`` accepts it).
+
 **Unobservable.**  When the measurements and priors together leave a direction undetermined
 (rank below the number of free unknowns: σ = ∞), the verdict says so — "not observable", never
 "well determined" — and ``accept`` does not override it: there is no estimate to accept.
@@ -63,6 +73,9 @@ import numpy as np
 from mbcal.measurements.registry import get_model
 from mbcal.observability import Observability, ObservabilityConfig, scale_stand_ins, yardstick_text
 from mbcal.problem import Problem
+from mbcal.solver import Status, represented_after
+from mbcal.text import fmt
+from mbcal.units import to_display
 
 
 def _special() -> Any:
@@ -161,6 +174,7 @@ __all__ = [
     "WeakDirection",
     "assess_fit",
     "assess_plan",
+    "distinct_minima",
     "measurement_groups",
     "chi2_sf",
     "systematic_residuals",
@@ -193,6 +207,16 @@ this much (a quarter of their scatter shared), significantly (the fit's threshol
 SYSTEMATIC_MIN_SIZE = 0.1
 """… and the shared part is at least this fraction of σ (not a numerical ripple of a fit to
 noise-free data)."""
+
+AMBIGUOUS_MARGIN = 3.841
+"""Restarts that converged with S at most this much above the best one (χ²'s 95 % point for one
+degree of freedom, in the units of the stated σ, or of the scaled covariance's) fit as well …"""
+
+AMBIGUOUS_SIGMAS = 5.0
+"""… and when one of them lies more than this many σ of the estimate from it in some unknown, the
+measurements have more than one answer (:func:`distinct_minima`)."""
+
+_ANGLE_UNITS = ("deg", "rad")  # unknowns whose values 2π apart are compared as the same angle
 
 _RTOL = 1e-10  # singular values below this fraction of the largest count as zero
 _MAX_ROUNDS = 200  # rounds of the outlier search (each refits the linearised problem once)
@@ -313,6 +337,12 @@ class FitVerdict:
     not_converged: str | None = None
     """Why the solve's best restart did not converge (its status: ``max_iterations``), else None:
     the verdict is then not trustworthy, and ``--accept-poor-fit`` does not accept it."""
+    ambiguous: tuple[Suspect, ...] = ()
+    """Another solution the restarts found, as good as the estimate and far from it
+    (:func:`distinct_minima`, kind ``ambiguous``): not trustworthy, ``--accept-poor-fit`` accepts it."""
+    held: tuple[str, ...] = ()
+    """Unknowns held at a hard limit the data push past (σ 0: the limit, not a measurement of it):
+    not trustworthy, ``--accept-poor-fit`` accepts it."""
     systematic: tuple[Suspect, ...] = ()
     """Cameras whose image points' residuals are smooth across the image (neighbouring points off
     alike): a model error the χ² test misses when σ is stated larger than the residuals
@@ -331,7 +361,14 @@ class FitVerdict:
     def trustworthy(self) -> bool:
         """Converged, consistent and well determined (what ``accepted`` overrides, unless
         undetermined or not converged)."""
-        return self.not_converged is None and self.consistent and not self.systematic and self.well_determined
+        return (
+            self.not_converged is None
+            and self.consistent
+            and not self.systematic
+            and not self.ambiguous
+            and not self.held
+            and self.well_determined
+        )
 
     @property
     def ok(self) -> bool:
@@ -395,6 +432,14 @@ class FitVerdict:
                 )
         for sy in self.systematic:
             out.append(f"  systematic residuals: {sy.description}")
+        for other in self.ambiguous:
+            out.append(f"  another solution as good: {other.description}")
+        if self.held:
+            out.append(
+                f"  held at a hard limit: {', '.join(self.held)} — the data put "
+                f"{'it' if len(self.held) == 1 else 'them'} beyond the limit, so σ 0 there is the limit's, not a "
+                "measurement's (widen the range, or check the model and the data)"
+            )
         if not self.determined:
             missing = (
                 f"{self.unknowns - self.rank} direction(s)"
@@ -435,6 +480,10 @@ class FitVerdict:
             why.append("the fit is inconsistent with the stated σ")
         if self.systematic:
             why.append("the residuals are systematic")
+        if self.ambiguous:
+            why.append("another solution fits as well")
+        if self.held:
+            why.append("held at a hard limit")
         if self.determined and not self.well_determined:
             why.append("weakly determined")
         text = f"NOT trustworthy: {' and '.join(why)}"
@@ -461,6 +510,8 @@ class FitVerdict:
             "set_aside": list(self.set_aside),
             "suspects": [s.to_json() for s in self.suspects],
             "systematic": [s.to_json() for s in self.systematic],
+            "ambiguous": [s.to_json() for s in self.ambiguous],
+            "held": list(self.held),
             "recommend_robust": self.recommend_robust,
             "weak": [w.to_json() for w in self.weak],
             "weak_fraction": self.weak_fraction,
@@ -726,6 +777,76 @@ def systematic_residuals(
     return found
 
 
+def distinct_minima(
+    solved: Any,
+    obs: Observability,
+    units: Mapping[str, str],
+    *,
+    local: Any = None,
+    scale: float = 1.0,
+) -> list[Suspect]:
+    """Other solutions as good as the estimate: restarts of ``solved`` (a
+    :class:`mbcal.solver.LeastSquaresResult`) that converged with S at most
+    :data:`AMBIGUOUS_MARGIN` above the best (ΔS divided by ``scale``, the factor the covariance was
+    scaled by), at a point more than :data:`AMBIGUOUS_SIGMAS` σ (``obs.std``) from the estimate in
+    some unknown.  Each restart is first written nearest the estimate (``local.represent_after``:
+    one rotation's two angle triples are one solution), and angles are compared modulo 2π.  One
+    :class:`Suspect` (kind ``ambiguous``) naming the nearest-S such restart and its farthest
+    unknown, or none."""
+    best = int(solved.best)
+    cost = np.asarray(solved.cost, dtype=float)
+    if best < 0 or len(cost) < 2:
+        return []
+    converged = np.isin(np.asarray(solved.status), [st.value for st in Status if st.converged])
+    gap = (cost - cost[best]) / (scale if scale > 0 and np.isfinite(scale) else 1.0)
+    near = np.nonzero(converged & np.isfinite(cost) & (gap <= AMBIGUOUS_MARGIN))[0]
+    near = near[near != best]
+    if not near.size:
+        return []
+    x = np.asarray(solved.x, dtype=float)
+    here = x[best]
+    others = x[near]
+    if local is not None and hasattr(local, "represent_after"):
+        others = represented_after(local, others, np.broadcast_to(here, others.shape).copy())
+    names = list(obs.names)
+    delta = others - here
+    angle = np.array([units.get(name) in _ANGLE_UNITS for name in names], dtype=bool)
+    delta[:, angle] = (delta[:, angle] + math.pi) % (2 * math.pi) - math.pi
+    std = np.asarray(obs.std, dtype=float)
+    usable = np.isfinite(std) & (std > 0)  # not unobservable, not held at a limit (σ 0)
+    with np.errstate(invalid="ignore"):
+        z = np.where(usable, np.abs(delta) / np.where(usable, std, 1.0), 0.0)
+    z = np.where(np.isfinite(z), z, 0.0)
+    far = np.nonzero(z.max(axis=1) > AMBIGUOUS_SIGMAS)[0]
+    if not far.size:
+        return []
+    k = int(far[np.argmin(gap[near[far]])])  # the one that fits best
+    j = int(np.argmax(z[k]))
+    restart, name, unit = int(near[k]), names[j], units.get(names[j], "")
+
+    def shown(v: float, digits: int = 7) -> str:
+        return f"{fmt(to_display(unit, v), digits)} {unit}".rstrip()
+
+    more = f"; {far.size - 1} more restart(s) ended away from it as well" if far.size > 1 else ""
+    description = (
+        f"restart #{restart} converged with S = {fmt(cost[restart], 6)} (the estimate's {fmt(cost[best], 6)}) at "
+        f"{name} = {shown(others[k, j])}, {fmt(z[k, j], 3)} σ from the estimate {shown(here[j])} ± "
+        f"{shown(std[j], 3)}{more} — the measurements do not tell the two apart: measure what separates them, "
+        "or narrow the unknown's range to the right one"
+    )
+    return [
+        Suspect(
+            "ambiguous",
+            name,
+            tuple(str(int(near[i])) for i in far),
+            float(gap[near[k]]),
+            None,
+            float(z[k, j]),
+            description,
+        )
+    ]
+
+
 def _bonferroni(p: float | np.ndarray, count: int) -> Any:
     return np.minimum(np.asarray(p) * max(count, 1), 1.0)
 
@@ -834,6 +955,7 @@ def assess_fit(
     accept: bool = False,
     groups: Mapping[str, Sequence[int]] | None = None,
     linearize: Callable[[np.ndarray], Any] | None = None,
+    ambiguous: Sequence[Suspect] = (),
 ) -> FitVerdict:
     """The verdict on a calibration at its estimate.
 
@@ -853,6 +975,8 @@ def assess_fit(
         rows → the problem linearised on those rows, refitted (``S``, ``dof``, ``deletion``,
         ``deletions`` as :class:`_Linear`); ``J`` may then be None.  A structured problem's
         (:class:`mbcal.structured.StructuredLinear`) works from its blocks, without the m × n J.
+    ambiguous : sequence of Suspect
+        The other solutions the restarts found as good (:func:`distinct_minima`).
     """
     config = config or FitConfig()
     alpha = config.threshold
@@ -868,6 +992,8 @@ def assess_fit(
         max_condition=config.max_condition,
         accepted=accept,
         systematic=systematic,
+        ambiguous=tuple(ambiguous),
+        held=tuple(getattr(obs, "active_bounds", {})),
         **weak,
     )
     if dof == 0:

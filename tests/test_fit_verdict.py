@@ -450,6 +450,90 @@ def test_an_unknown_held_at_its_limit_leaves_a_degree_of_freedom_to_scale_the_co
     assert result.verdict.dof == 1 and result.verdict.tested and result.run.scale_covariance
     chi2 = result.cost / 1
     assert result.std["b"] == pytest.approx(0.01 * math.sqrt(chi2), rel=1e-6)
+    # σ 0 at the limit is the limit's, not a measurement's: the verdict says so and is not trusted
+    assert result.verdict.held == ("a",) and not result.verdict.trustworthy and not result.ok
+    assert "held at a hard limit: a" in result.summary()
+    assert "held at a hard limit (exit status 1" in result.verdict.verdict()
+    assert result.to_json()["fit"]["held"] == ["a"]
+    jsonschema.validate(json.loads(json.dumps(result.to_json())), schema())
+    accepted = mbcal.calibrate(model, data, ["a", "b", "c"], restarts=2, accept_poor_fit=True)
+    assert accepted.ok and not accepted.verdict.trustworthy
+
+
+# A lever measured by distances alone: each depends on cos(angle), so +angle and −angle fit alike.
+MIRRORED = """
+measure distance
+param lever.angle = 20 deg in [{low}, 90 deg]
+frame lever at (0, 0, 1 m) {{
+  joint revolute(y, lever.angle)
+  point tip = (0, 0, 30 cm)
+}}
+frame refs {{
+  point r1 = (0, 0, 0)
+  point r2 = (0, 0.2 m, 0.5 m)
+  point r3 = (0, -0.3 m, 0.2 m)
+}}
+"""
+
+
+def test_two_solutions_that_fit_alike_are_named_and_not_trusted():
+    """Restarts ended at +25° and −25° with the same S; the report said 'consistent and well
+    determined' (σ 0.25°) for whichever came first, 200 σ from the other."""
+    records = [{"kind": "distance", "a": "lever.tip", "b": f"refs.r{k}", "sigma": 0.001} for k in (1, 2, 3)]
+    for low, ambiguous in (("-90 deg", True), ("0 deg", False)):
+        model = mbcal.load_model_text(MIRRORED.format(low=low))
+        plan = mbcal.measurements_from_records(records, model)
+        data = mbcal.simulate(model, plan, {"lever.angle": math.radians(25)}, noise=1.0, seed=3)
+        result = mbcal.calibrate(model, data, ["lever.angle"], restarts=16, seed=1)
+        assert result.converged and result.verdict.consistent
+        found = result.verdict.ambiguous
+        assert bool(found) == ambiguous, result.summary()
+        if ambiguous:
+            (other,) = found
+            assert other.kind == "ambiguous" and other.subject == "lever.angle" and other.factor > 100
+            assert abs(result.values["lever.angle"]) == pytest.approx(math.radians(25), abs=0.02)
+            assert not result.verdict.trustworthy and not result.ok
+            assert "another solution as good: restart #" in result.summary()
+            assert result.verdict.verdict().startswith("NOT trustworthy: another solution fits as well")
+            report = json.loads(json.dumps(result.to_json()))
+            jsonschema.validate(report, schema())
+            assert report["fit"]["ambiguous"][0]["subject"] == "lever.angle"
+        else:  # the range holds the one solution
+            assert result.verdict.trustworthy and result.values["lever.angle"] > 0
+
+
+def test_restarts_at_one_rotations_other_angles_or_a_turn_away_are_one_solution(room):
+    """The room's orientation: (r, p, y) and (r + π, π − p, y + π) are one rotation, and an angle
+    2π away the same angle — not a second solution; a restart truly elsewhere is one."""
+    import dataclasses
+
+    from mbcal.fit import distinct_minima
+
+    plan = mbcal.read_measurements(MEASUREMENTS / "room_plan.csv", room)
+    data = mbcal.simulate(room, plan, ROOM_TRUTH, seed=21)
+    result = mbcal.calibrate(room, data, ["room.*"], restarts=2, seed=0)
+    assert result.verdict.trustworthy
+    solved, names = result.solver, list(result.observability.names)
+    best = solved.x_best
+    r, p, y = (names.index(f"room.{a}") for a in ("roll", "pitch", "yaw"))
+    flipped = best.copy()
+    flipped[[r, p, y]] = best[r] + math.pi, math.pi - best[p], best[y] + math.pi
+    turned = best.copy()
+    turned[y] += 2 * math.pi
+    units = {name: result.problem.params.info(name).unit for name in names}
+    for other, expected in ((flipped, 0), (turned, 0), (best + 50 * result.observability.std, 1)):
+        fake = dataclasses.replace(
+            solved,
+            x=np.stack([best, other]),
+            cost=np.array([solved.cost_best, solved.cost_best + 1.0]),
+            status=np.array([1, 1]),
+            iterations=np.array([5, 5]),
+            best=0,
+            x0=np.stack([best, other]),
+            active=None,
+        )
+        found = distinct_minima(fake, result.observability, units, local=result.problem.local)
+        assert len(found) == expected, (other, found)
 
 
 def test_a_robust_fit_whose_rest_is_untestable_says_the_groups_found_make_it_inconsistent():
