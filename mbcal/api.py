@@ -531,7 +531,10 @@ def calibrate(
         config=o.fit,
         observability=observability,
         accept=o.accept_poor_fit,
-        ambiguous=distinct_minima(solved, obs, _units(problem), local=problem.local, scale=chi2),
+        ambiguous=distinct_minima(
+            solved, obs, _units(problem), local=problem.local, scale=chi2, ranges=(params.lower, params.upper)
+        ),
+        leverage=structure is None,  # J is at hand; a structured problem's would be scattered for it
     )
     return _result(problem, solved, x, x_init, obs, rows, verdict, o, config, t0)
 
@@ -687,7 +690,9 @@ def _calibrate_by_blocks(
         observability=o.observability,
         accept=o.accept_poor_fit,
         linearize=lambda kept: StructuredLinear(structure, r, Jc, kept),
-        ambiguous=distinct_minima(solved, obs, _units(problem), local=problem.local, scale=chi2),
+        ambiguous=distinct_minima(
+            solved, obs, _units(problem), local=problem.local, scale=chi2, ranges=(params.lower, params.upper)
+        ),
     )
     return _result(problem, solved, x, x_init, obs, rows, verdict, o, config, t0)
 

@@ -49,6 +49,10 @@ do not prefer the best — at unknowns more than :data:`AMBIGUOUS_SIGMAS` σ fro
 poses, an angle whose sign the measurements cannot tell) make the result untrustworthy: the
 estimate's σ describes one of the solutions and says nothing of the other.
 
+**Untested measurements** (dense problems).  A measurement that alone determines part of the
+unknowns (deleting it loses rank: an eigenvalue of 1 in its block of the hat matrix) has a residual
+of ~0 whatever its error; the report names it, and the verdict says so beside "consistent".
+
 **Held at a hard limit.**  An unknown the data push past its ``bounded`` range ends on the limit
 with σ 0: that is the limit, not a measurement of it, so the result is not trustworthy either
 (``accept`` accepts it).
@@ -340,6 +344,12 @@ class FitVerdict:
     ambiguous: tuple[Suspect, ...] = ()
     """Another solution the restarts found, as good as the estimate and far from it
     (:func:`distinct_minima`, kind ``ambiguous``): not trustworthy, ``--accept-poor-fit`` accepts it."""
+    untested: tuple[str, ...] = ()
+    """Measurements (ids) that alone determine part of the unknowns: deleting one leaves a direction
+    undetermined, so its residual is zero whatever its error and no test can see a mistake in it
+    (the tip of a lever whose two coordinates fix its angle and length).  Said beside the verdict;
+    like a fit without redundancy, it does not make the result untrustworthy (dense problems:
+    not computed for a problem solved by blocks)."""
     held: tuple[str, ...] = ()
     """Unknowns held at a hard limit the data push past (σ 0: the limit, not a measurement of it):
     not trustworthy, ``--accept-poor-fit`` accepts it."""
@@ -434,6 +444,13 @@ class FitVerdict:
             out.append(f"  systematic residuals: {sy.description}")
         for other in self.ambiguous:
             out.append(f"  another solution as good: {other.description}")
+        if self.untested:
+            more = len(self.untested) - 10
+            shown = ", ".join(self.untested[:10]) + (f" and {more} more" if more > 0 else "")
+            out.append(
+                f"  untested: {shown} — each alone determines part of the unknowns, so its residual is ~0 whatever "
+                "its error and no test can see a mistake in it (measure more of what it measures)"
+            )
         if self.held:
             out.append(
                 f"  held at a hard limit: {', '.join(self.held)} — the data put "
@@ -468,6 +485,8 @@ class FitVerdict:
         """One phrase: trustworthy or not, and why."""
         if self.trustworthy:
             if self.tested:
+                if self.untested:
+                    return f"consistent and well determined, but {len(self.untested)} measurement(s) untested (above)"
                 return "consistent and well determined"
             # a plan (no measured values) has no fit to test; a solve without redundancy has one it cannot test
             return "well determined" if self.chi2 is None else "well determined (the fit is not tested)"
@@ -511,6 +530,7 @@ class FitVerdict:
             "suspects": [s.to_json() for s in self.suspects],
             "systematic": [s.to_json() for s in self.systematic],
             "ambiguous": [s.to_json() for s in self.ambiguous],
+            "untested": list(self.untested),
             "held": list(self.held),
             "recommend_robust": self.recommend_robust,
             "weak": [w.to_json() for w in self.weak],
@@ -784,13 +804,17 @@ def distinct_minima(
     *,
     local: Any = None,
     scale: float = 1.0,
+    ranges: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> list[Suspect]:
     """Other solutions as good as the estimate: restarts of ``solved`` (a
     :class:`mbcal.solver.LeastSquaresResult`) that converged with S at most
     :data:`AMBIGUOUS_MARGIN` above the best (ΔS divided by ``scale``, the factor the covariance was
     scaled by), at a point more than :data:`AMBIGUOUS_SIGMAS` σ (``obs.std``) from the estimate in
     some unknown.  Each restart is first written nearest the estimate (``local.represent_after``:
-    one rotation's two angle triples are one solution), and angles are compared modulo 2π.  One
+    one rotation's two angle triples are one solution), and angles are compared modulo 2π.
+    ``ranges``: the search ranges (lower, upper; nan where none): a restart outside an unknown's
+    range where the estimate is inside it is the other side of what the model says the value
+    could be (a lever turned half a turn with a negative length), not a second answer.  One
     :class:`Suspect` (kind ``ambiguous``) naming the nearest-S such restart and its farthest
     unknown, or none."""
     best = int(solved.best)
@@ -812,6 +836,18 @@ def distinct_minima(
     delta = others - here
     angle = np.array([units.get(name) in _ANGLE_UNITS for name in names], dtype=bool)
     delta[:, angle] = (delta[:, angle] + math.pi) % (2 * math.pi) - math.pi
+    if ranges is not None:
+        lower, upper = (np.asarray(v, dtype=float) for v in ranges)
+        placed = here + delta  # angles written nearest the estimate
+
+        def inside(v: np.ndarray) -> np.ndarray:
+            with np.errstate(invalid="ignore"):
+                return ~((v < lower) | (v > upper))  # no range (nan): inside
+
+        keep = ~np.any(inside(here)[None, :] & ~inside(placed), axis=1)
+        near, delta, others = near[keep], delta[keep], others[keep]
+        if not near.size:
+            return []
     std = np.asarray(obs.std, dtype=float)
     usable = np.isfinite(std) & (std > 0)  # not unobservable, not held at a limit (σ 0)
     with np.errstate(invalid="ignore"):
@@ -956,6 +992,7 @@ def assess_fit(
     groups: Mapping[str, Sequence[int]] | None = None,
     linearize: Callable[[np.ndarray], Any] | None = None,
     ambiguous: Sequence[Suspect] = (),
+    leverage: bool = False,
 ) -> FitVerdict:
     """The verdict on a calibration at its estimate.
 
@@ -977,6 +1014,9 @@ def assess_fit(
         (:class:`mbcal.structured.StructuredLinear`) works from its blocks, without the m × n J.
     ambiguous : sequence of Suspect
         The other solutions the restarts found as good (:func:`distinct_minima`).
+    leverage : bool
+        Name the measurements that alone determine part of the unknowns (``untested``): needs ``J``
+        (an SVD of it: the caller says whether that is cheap).
     """
     config = config or FitConfig()
     alpha = config.threshold
@@ -986,6 +1026,25 @@ def assess_fit(
     dof = max(m_rows - int(obs.rank_with_priors), 0)
     weak = _weak_part(problem, obs, config, observability)
     systematic = tuple(systematic_residuals(problem, r, alpha))
+    ms = problem.measurements.measurements
+    ids = [m.id for m in ms]
+    blocks = [np.arange(s.start, s.stop) for s in problem.measurement_rows]
+    Jd: np.ndarray | None = None
+
+    def dense_j() -> np.ndarray:
+        nonlocal Jd
+        if Jd is None:
+            Jd = np.array(J() if callable(J) else J, dtype=float)
+            held = [obs.names.index(name) for name in getattr(obs, "active_bounds", {}) if name in obs.names]
+            Jd[:, held] = 0.0  # unknowns held at an active hard bound are not refitted
+        return Jd
+
+    untested: tuple[str, ...] = ()
+    if leverage and J is not None and linearize is None and ms:
+        # d < the block's size: deleting the measurement loses rank, its residual is forced to ~0
+        every = np.arange(r.shape[0])
+        _, d = _Linear(r, dense_j(), every).deletions(blocks)
+        untested = tuple(ids[i] for i in range(len(ms)) if len(blocks[i]) and d[i] < len(blocks[i]))
     common = dict(
         threshold=alpha,
         loss=str(loss),
@@ -993,6 +1052,7 @@ def assess_fit(
         accepted=accept,
         systematic=systematic,
         ambiguous=tuple(ambiguous),
+        untested=untested,
         held=tuple(getattr(obs, "active_bounds", {})),
         **weak,
     )
@@ -1002,14 +1062,8 @@ def assess_fit(
     robust = str(loss) != "linear"
     if p >= alpha and not robust:  # consistent: nothing to look for (and nothing below computed, issue 16)
         return FitVerdict(S, dof, p, consistent=True, **common)  # type: ignore[arg-type]
-    Jd: np.ndarray | None = None
     if linearize is None:
-        Jd = np.array(J() if callable(J) else J, dtype=float)
-        held = [obs.names.index(name) for name in getattr(obs, "active_bounds", {}) if name in obs.names]
-        Jd[:, held] = 0.0  # unknowns held at an active hard bound are not refitted
-    ms = problem.measurements.measurements
-    ids = [m.id for m in ms]
-    blocks = [np.arange(s.start, s.stop) for s in problem.measurement_rows]
+        dense_j()
     prior_rows = np.arange(problem.size, problem.n_residuals)
 
     def rows_of(members) -> np.ndarray:

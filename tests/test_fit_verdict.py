@@ -736,3 +736,31 @@ def test_a_view_of_many_points_is_paired_a_slice_at_a_time_with_the_same_sums():
     uv = rng.uniform(0.0, 640.0, (700, 2))
     res = rng.normal(size=(700, 2)) + 0.5 * np.sin(uv / 100.0)
     np.testing.assert_allclose(_neighbour_sums_large(uv, res)[0], _neighbour_sums(uv[None], res[None])[0], rtol=1e-12)
+
+
+def test_a_measurement_that_alone_determines_unknowns_is_named_untested():
+    """The lever's tip alone fixes its angle and length: a click 47 px off moved the angle by 14°
+    under 'consistent and well determined', with nothing in the report to say the tip was never
+    tested.  Its other half-turn solution (length < 0, angle outside its range) is not a second answer."""
+    model = mbcal.load_model(MODELS / "lever.mdl")
+    plan = mbcal.read_measurements(MEASUREMENTS / "lever_plan.csv", model)
+    data = mbcal.simulate(model, plan, {"lever.angle": math.radians(30)}, noise=1.0, seed=1)
+    bad = [m.value.copy() for m in data]
+    tip = [k for k, m in enumerate(data) if m.id == "tip"][0]
+    bad[tip] = bad[tip] + np.array([-40.0, 25.0])
+    moved = data.with_values(bad)
+    result = mbcal.calibrate(model, moved, ["lever.angle", "lever.length"], restarts=16, seed=0)
+    assert result.verdict.consistent and result.verdict.untested == ("tip",)
+    assert result.verdict.ambiguous == ()  # the half-turn with a negative length lies outside the angle's range
+    assert result.verdict.trustworthy and result.ok  # as a fit without redundancy: said, not refused
+    assert "untested: tip" in result.summary()
+    assert result.verdict.verdict() == "consistent and well determined, but 1 measurement(s) untested (above)"
+    report = json.loads(json.dumps(result.to_json()))
+    jsonschema.validate(report, schema())
+    assert report["fit"]["untested"] == ["tip"]
+    # the hub moves with neither unknown: its residual tests the camera, it is not "untested"; with
+    # more points on the lever the tip is tested too
+    room = mbcal.load_model(ROOM)
+    plan = mbcal.read_measurements(MEASUREMENTS / "room_plan.csv", room)
+    clean = mbcal.calibrate(room, mbcal.simulate(room, plan, ROOM_TRUTH, seed=21), ["room.*"], restarts=2)
+    assert clean.verdict.untested == () and clean.verdict.verdict() == "consistent and well determined"
