@@ -204,6 +204,11 @@ class SolverError(MbcalError):
     """A problem cannot be set up for the solver (e.g. no unknowns)."""
 
 
+class MeasurementModelError(MbcalError):
+    """A measurement model (a plugin) broke its protocol: ``predict`` or ``visible`` gave an array
+    of the wrong shape, or one of its methods raised (the original error is the ``__cause__``)."""
+
+
 class UrdfError(MdlError):
     """A URDF file cannot be read or turned into a model."""
 

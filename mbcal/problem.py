@@ -24,13 +24,13 @@ import numpy as np
 
 from mbcal._jax import jax, jit, jnp, release_memory
 from mbcal.cache import PROGRAMS, Hasher, code_fingerprint, enable_compilation_cache, exported, source_fingerprint
-from mbcal.errors import SolverError
+from mbcal.errors import MeasurementModelError, SolverError
 from mbcal.geometry.shapes import runtime_shapes
 from mbcal.language import soa_math as sm
 from mbcal.language.functions import runtime_functions
 from mbcal.language.model import Model
 from mbcal.measurements.protocol import Batch, MeasurementModel
-from mbcal.measurements.registry import declared_models, get_model
+from mbcal.measurements.registry import declared_models, describe, get_model
 from mbcal.measurements.sets import MeasurementSet
 from mbcal.modeling import Needs, RpyTriple, modeler, rpy_triples
 from mbcal.params import ParameterSet
@@ -55,6 +55,43 @@ class Group:
     @property
     def rows(self) -> int:
         return len(self.members) * self.model.size
+
+
+def _predicted(g: Group, scenes: Scene) -> Array:
+    """The predictions of a group, flat (n · size,) as h stacks them.
+
+    A model's ``predict`` must give (n, len(values)) — (n,) too when it has one value — and its
+    shape is checked here, as it is traced (the shape is static: no cost in the compiled
+    program).  Flattened unchecked, an (n, 2) from a model of one value, or a (2, n) for
+    (n, 2), would shift or transpose the rows of h against y, and every later kind's with them:
+    a wrong fit that the verdict could call trustworthy.
+    """
+    mm, n = g.model, len(g.batch)
+    out = mm.predict(scenes, g.batch)
+    shape = tuple(jnp.shape(out))
+    if shape != (n, mm.size) and not (mm.size == 1 and shape == (n,)):
+        either = f" or ({n},)" if mm.size == 1 else ""
+        values = ", ".join(repr(v) for v in mm.values)
+        raise MeasurementModelError(
+            f"{describe(mm)}: predict returned an array of shape {shape} for {n} measurements; "
+            f"expected ({n}, {mm.size}){either}: one row per measurement, one column per value ({values})",
+            hint="see 'The protocol' in docs/plugins.md",
+        )
+    return jnp.reshape(out, (-1,))
+
+
+def _visible(g: Group, scenes: Scene) -> Array:
+    """A group's visibility flags (n,), their shape checked as they are traced (see :func:`_predicted`)."""
+    mm, n = g.model, len(g.batch)
+    out = mm.visible(scenes, g.batch)
+    shape = tuple(jnp.shape(out))
+    if shape != (n,):
+        raise MeasurementModelError(
+            f"{describe(mm)}: visible returned an array of shape {shape} for {n} measurements; "
+            f"expected ({n},): one flag per measurement",
+            hint="see 'The protocol' in docs/plugins.md",
+        )
+    return out
 
 
 class Problem:
@@ -235,7 +272,7 @@ class Problem:
 
     def _predict(self, x: Array, known: Array) -> Array:
         scenes = self.scenes(x, known)
-        parts = [jnp.reshape(g.model.predict(scenes, g.batch), (-1,)) for g in self.groups]
+        parts = [_predicted(g, scenes) for g in self.groups]
         return jnp.concatenate(parts) if parts else jnp.zeros(0)
 
     def _whitened(self, h: Array, y: Array) -> Array:
@@ -303,7 +340,7 @@ class Problem:
 
     def _visible(self, x: Array, known: Array) -> list[Array]:
         scenes = self.scenes(x, known)
-        return [g.model.visible(scenes, g.batch) for g in self.groups]
+        return [_visible(g, scenes) for g in self.groups]
 
     def first_analysis(self) -> bool:
         """Whether no calibration in this process has analysed a problem of this structure yet (its
@@ -458,7 +495,7 @@ class Problem:
             return modeler(self.model, view, self.needs, replace=replace)
 
         scenes = jax.vmap(scene)(rows, configs)
-        parts = [jnp.reshape(g.model.predict(scenes, g.batch), (-1,)) for g in self.groups]
+        parts = [_predicted(g, scenes) for g in self.groups]
         r = self._whitened(jnp.concatenate(parts) if parts else jnp.zeros(0), y)
         if len(self.prior_index):
             r = jnp.concatenate([r, (x_eff[self.prior_index] - self.prior_mean) / self.prior_sigma])

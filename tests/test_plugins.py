@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from mbcal.errors import MeasurementFileError
-from mbcal.measurements import MeasurementModel, get_model, register, registry
+from mbcal.measurements import MeasurementModel, Role, get_model, register, registry
 
 from conftest import ROOT
 
@@ -152,3 +152,81 @@ def test_a_measure_kind_no_installed_model_provides_is_reported_at_the_statement
         Problem(model, data, ["a"])
     ok = load_model_text("param a = 1 m\npoint p = (a, 0, 0)\nmeasure point3d\n")
     assert len(Problem(ok, measurements_from_records([record], ok), ["a"]).groups) == 1
+
+
+# ---- a plugin that breaks the protocol is named, never silently misread --------------------------
+
+SHELF = """
+param shelf.z = 1.0 m in [0.8 m, 1.2 m]
+frame shelf at (0, 0, shelf.z) {
+  point front = (0, -0.2 m, 0)
+  point middle = (0, 0, 0)
+  point back = (0, 0.2 m, 0)
+}
+measure point3d, KIND
+"""
+
+
+def _plugin(kind: str, values: tuple[str, ...], predict, visible=None) -> MeasurementModel:
+    """A point plugin of ``kind`` registered from Python, with the given predict (and visible)."""
+    methods = {"kind": kind, "roles": (Role("point", "point"),), "values": values, "value_dimension": "length"}
+    methods["predict"] = lambda self, scenes, batch: predict(scenes.points[batch.config, batch.refs["point"]])
+    if visible is not None:
+        methods["visible"] = lambda self, scenes, batch: visible(len(batch))
+    return register(type(f"Plugin_{kind}", (MeasurementModel,), methods))
+
+
+def _shelf_plan(kind: str):
+    import mbcal
+
+    model = mbcal.load_model_text(SHELF.replace("KIND", kind))
+    points = ("shelf.front", "shelf.middle", "shelf.back")
+    records = [{"kind": kind, "point": p, "sigma": 0.001} for p in points]
+    records += [{"kind": "point3d", "point": p, "sigma": 0.001} for p in points]
+    return model, mbcal.measurements_from_records(records, model)
+
+
+@pytest.mark.parametrize(
+    "kind, values, predict, expected",
+    [
+        ("test_too_wide", ("value",), lambda p: p[:, 1:3], r"\(3, 2\) for 3 measurements; expected \(3, 1\) or \(3,\)"),
+        ("test_transposed", ("a", "b"), lambda p: p[:, 1:3].T, r"\(2, 3\) for 3 measurements; expected \(3, 2\):"),
+        ("test_scalar", ("value",), lambda p: p[:, 2].sum(), r"shape \(\) for 3 measurements"),
+    ],
+)
+def test_a_plugin_predicting_the_wrong_shape_is_named(kind, values, predict, expected):
+    """A plugin of one value that returned (n, 2), or (2, n) for (n, 2), was flattened: every
+    later row of h was read against another measurement's value, and the fit could be reported
+    trustworthy."""
+    import mbcal
+    from mbcal.errors import MeasurementModelError
+
+    _plugin(kind, values, predict)
+    model, plan = _shelf_plan(kind)
+    with pytest.raises(MeasurementModelError, match=f"^measurement model '{kind}': predict returned an array of"):
+        mbcal.simulate(model, plan, {"shelf.z": 1.05}, noise=0)
+    with pytest.raises(MeasurementModelError, match=expected):
+        mbcal.Problem(model, plan, ["shelf.z"]).residual(np.array([1.0]), np.zeros(12 + 3 * (len(values) - 1)))
+
+
+def test_a_plugin_of_one_value_may_predict_one_flat_value_per_measurement():
+    import mbcal
+
+    _plugin("test_flat", ("value",), lambda p: p[:, 2])
+    model, plan = _shelf_plan("test_flat")
+    data = mbcal.simulate(model, plan, {"shelf.z": 1.05}, noise=0)
+    assert [float(m.value[0]) for m in data][:3] == pytest.approx([1.05] * 3)
+    result = mbcal.calibrate(model, data, ["shelf.z"], restarts=1)
+    assert result.values["shelf.z"] == pytest.approx(1.05)
+
+
+def test_a_plugin_whose_visible_has_the_wrong_shape_is_named():
+    import mbcal
+    from mbcal._jax import jnp
+    from mbcal.errors import MeasurementModelError
+
+    _plugin("test_visible_half", ("value",), lambda p: p[:, 2:3], visible=lambda n: jnp.ones((2,), bool))
+    model, plan = _shelf_plan("test_visible_half")
+    message = r"^measurement model 'test_visible_half': visible returned an array of shape \(2,\) for 3 measurements"
+    with pytest.raises(MeasurementModelError, match=message):
+        mbcal.simulate(model, plan, {"shelf.z": 1.05}, noise=0)

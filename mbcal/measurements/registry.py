@@ -29,6 +29,7 @@ __all__ = [
     "declared_models",
     "register",
     "register_measurement_model",
+    "describe",
     "ENTRY_POINT_GROUP",
 ]
 
@@ -36,6 +37,9 @@ ENTRY_POINT_GROUP = "mbcal.measurements"
 
 _REGISTRY: dict[str, MeasurementModel] | None = None
 _EXTRA: dict[str, MeasurementModel] = {}
+# The package (distribution) of each model an entry point provided, by id; the model is kept with
+# it, so that the id is never another object's.
+_PACKAGES: dict[int, tuple[MeasurementModel, str]] = {}
 
 
 def _load() -> dict[str, MeasurementModel]:
@@ -63,6 +67,9 @@ def _load() -> dict[str, MeasurementModel]:
             )
         found.setdefault(instance.kind, instance)
         _take_digest(instance)
+        dist = getattr(ep, "dist", None)
+        if dist is not None and dist.name:
+            _PACKAGES[id(instance)] = (instance, dist.name)
     # Running from a source tree without installed metadata: the built-ins are still there.
     for cls in BUILTINS:
         found.setdefault(cls.kind, cls())
@@ -95,6 +102,16 @@ def _take_digest(instance: MeasurementModel) -> None:
 
 
 register_measurement_model = register
+
+
+def describe(model: MeasurementModel) -> str:
+    """``measurement model 'kind'`` for messages, with the package of a plugin that an entry point
+    provided (``measurement model 'height' (package mbcal-example-plugin)``)."""
+    text = f"measurement model '{getattr(model, 'kind', '') or type(model).__name__}'"
+    known = _PACKAGES.get(id(model))
+    if known is not None and known[0] is model and not type(model).__module__.startswith("mbcal."):
+        text += f" (package {known[1]})"
+    return text
 
 
 def get_model(kind: str) -> MeasurementModel:
