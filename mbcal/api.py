@@ -25,7 +25,7 @@ from mbcal.errors import SolverError
 from mbcal.errors import suggest as suggest_name
 from mbcal.fit import FitConfig, assess_fit, assess_plan, distinct_minima
 from mbcal.language.model import Model
-from mbcal.measurements.registry import get_model
+from mbcal.measurements.registry import call_model, get_model
 from mbcal.measurements.sets import MeasurementSet, measurements_from_records
 from mbcal.observability import (
     Observability,
@@ -330,7 +330,7 @@ def _candidates(problem: Problem, measured_keys: set) -> tuple[list[dict[str, An
     records = []
     for kind in kinds:
         mm = get_model(kind)  # every kind is installed: Problem checked the model's, the set its own
-        for rec in mm.candidates(model, list(problem.params.configurations)):
+        for rec in call_model(mm, "candidates", model, list(problem.params.configurations)):
             key = (
                 rec["kind"],
                 rec.get("config"),

@@ -30,7 +30,7 @@ from mbcal.language import soa_math as sm
 from mbcal.language.functions import runtime_functions
 from mbcal.language.model import Model
 from mbcal.measurements.protocol import Batch, MeasurementModel
-from mbcal.measurements.registry import declared_models, describe, get_model
+from mbcal.measurements.registry import call_model, declared_models, describe, get_model
 from mbcal.measurements.sets import MeasurementSet
 from mbcal.modeling import Needs, RpyTriple, modeler, rpy_triples
 from mbcal.params import ParameterSet
@@ -67,7 +67,7 @@ def _predicted(g: Group, scenes: Scene) -> Array:
     a wrong fit that the verdict could call trustworthy.
     """
     mm, n = g.model, len(g.batch)
-    out = mm.predict(scenes, g.batch)
+    out = call_model(mm, "predict", scenes, g.batch)
     shape = tuple(jnp.shape(out))
     if shape != (n, mm.size) and not (mm.size == 1 and shape == (n,)):
         either = f" or ({n},)" if mm.size == 1 else ""
@@ -83,7 +83,7 @@ def _predicted(g: Group, scenes: Scene) -> Array:
 def _visible(g: Group, scenes: Scene) -> Array:
     """A group's visibility flags (n,), their shape checked as they are traced (see :func:`_predicted`)."""
     mm, n = g.model, len(g.batch)
-    out = mm.visible(scenes, g.batch)
+    out = call_model(mm, "visible", scenes, g.batch)
     shape = tuple(jnp.shape(out))
     if shape != (n,):
         raise MeasurementModelError(
@@ -168,7 +168,7 @@ class Problem:
         self.groups: tuple[Group, ...] = tuple(groups)
         needs = Needs()
         for g in self.groups:
-            needs = needs.union(g.model.needs(model, g.batch))
+            needs = needs.union(call_model(g.model, "needs", model, g.batch))
         self.needs = needs  # what the measurements read: the modeler skips the rest
         self.size = start  # rows of h
         # Which measurement and which value each row of h belongs to (the reverse,

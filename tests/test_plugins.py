@@ -230,3 +230,96 @@ def test_a_plugin_whose_visible_has_the_wrong_shape_is_named():
     message = r"^measurement model 'test_visible_half': visible returned an array of shape \(2,\) for 3 measurements"
     with pytest.raises(MeasurementModelError, match=message):
         mbcal.simulate(model, plan, {"shelf.z": 1.05}, noise=0)
+
+
+def _raise(error: Exception):
+    def fail(*args):
+        raise error
+
+    return fail
+
+
+@pytest.mark.parametrize("method", ["predict", "visible"])
+def test_a_plugin_that_raises_is_named_with_its_error(method):
+    """A plugin's exception came out raw: a traceback and exit status 1, which the command line
+    documents as 'solved but not trustworthy'."""
+    import mbcal
+    from mbcal._jax import jnp
+    from mbcal.errors import MeasurementModelError
+
+    kind = f"test_raises_in_{method}"
+    if method == "predict":
+        _plugin(kind, ("value",), _raise(ValueError("plugin bug")))
+    else:
+        _plugin(kind, ("value",), lambda p: p[:, 2:3], visible=_raise(ValueError("plugin bug")))
+    model, plan = _shelf_plan(kind)
+    with pytest.raises(MeasurementModelError) as info:
+        mbcal.simulate(model, plan, {"shelf.z": 1.05}, noise=0)
+    assert info.value.message == f"measurement model '{kind}' failed in {method}: ValueError: plugin bug"
+    assert isinstance(info.value.__cause__, ValueError)
+    if method == "predict":
+        data = plan.with_values([np.array([v]) for v in [1.0, 1.0, 1.0]] + [jnp.zeros(3)] * 3)
+        with pytest.raises(MeasurementModelError, match=f"^measurement model '{kind}' failed in predict"):
+            mbcal.calibrate(model, data, ["shelf.z"], restarts=1)
+
+
+def test_a_plugin_whose_check_raises_is_named_at_the_measurement():
+    import mbcal
+    from mbcal.errors import MeasurementModelError
+
+    class CheckRaises(MeasurementModel):
+        kind = "test_check_raises"
+        roles = (Role("point", "point"),)
+        values = ("value",)
+
+        def predict(self, scenes, batch):
+            return scenes.points[batch.config, batch.refs["point"]][:, 2:3]
+
+        def check(self, model, refs, data):
+            raise KeyError("oops")
+
+    register(CheckRaises)
+    model = mbcal.load_model_text(SHELF.replace("KIND", "test_check_raises"))
+    with pytest.raises(MeasurementModelError) as info:
+        mbcal.measurements_from_records([{"kind": "test_check_raises", "point": "shelf.front", "value": 1}], model)
+    assert "measurement model 'test_check_raises' failed in check: KeyError: 'oops'" in str(info.value)
+    assert isinstance(info.value.__cause__, KeyError)
+
+
+def test_a_plugin_failing_on_the_command_line_exits_2_naming_it_and_its_package(tmp_path):
+    site = tmp_path / "site"
+    (site / "boom_plugin").mkdir(parents=True)
+    (site / "boom_plugin" / "__init__.py").write_text(
+        textwrap.dedent(
+            """
+            from mbcal.measurements import MeasurementModel, Role
+
+            class Boom(MeasurementModel):
+                kind = "boom"
+                roles = (Role("point", "point"),)
+                values = ("value",)
+                value_dimension = "length"
+
+                def predict(self, scenes, batch):
+                    raise ValueError("plugin bug")
+            """
+        )
+    )
+    dist = site / "boom_plugin-0.1.dist-info"
+    dist.mkdir()
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: boom-plugin\nVersion: 0.1\n")
+    (dist / "entry_points.txt").write_text("[mbcal.measurements]\nboom = boom_plugin:Boom\n")
+    (tmp_path / "shelf.mdl").write_text(SHELF.replace("KIND", "boom"))
+    (tmp_path / "boom.csv").write_text("kind,point,value,sigma,unit\nboom,shelf.front,105.2,1,cm\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(site), os.environ.get("PYTHONPATH", "")])}
+    out = subprocess.run(
+        [sys.executable, "-m", "mbcal", "solve", "shelf.mdl", "boom.csv", "--estimate", "shelf.z"],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=600,
+        cwd=tmp_path,
+    )
+    assert out.returncode == 2, out.stderr[-3000:]
+    assert "measurement model 'boom' (package boom-plugin) failed in predict: ValueError: plugin bug" in out.stderr
+    assert "Traceback" not in out.stderr

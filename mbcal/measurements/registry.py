@@ -16,9 +16,10 @@ from __future__ import annotations
 
 import warnings
 from importlib import metadata
+from typing import Any
 
 from mbcal.cache import source_fingerprint
-from mbcal.errors import MdlError, MeasurementFileError, suggest
+from mbcal.errors import MbcalError, MdlError, MeasurementFileError, MeasurementModelError, SourceSpan, suggest
 from mbcal.language.model import Model
 from mbcal.measurements.builtin import BUILTINS
 from mbcal.measurements.protocol import MeasurementModel
@@ -30,6 +31,7 @@ __all__ = [
     "register",
     "register_measurement_model",
     "describe",
+    "call_model",
     "ENTRY_POINT_GROUP",
 ]
 
@@ -112,6 +114,32 @@ def describe(model: MeasurementModel) -> str:
     if known is not None and known[0] is model and not type(model).__module__.startswith("mbcal."):
         text += f" (package {known[1]})"
     return text
+
+
+def call_model(model: MeasurementModel, method: str, *args: Any, where: SourceSpan | None = None) -> Any:
+    """``model.method(*args)``; a plugin's failure there as a :class:`MeasurementModelError`
+    (``measurement model 'boom' failed in predict: ValueError: plugin bug``, the original error
+    its ``__cause__``), which the command line reports with exit status 2 like other bad input —
+    not as a traceback with status 1 ("solved, not trustworthy").
+
+    A built-in model's failure is mbcal's own bug and propagates unchanged, as does an
+    :class:`~mbcal.errors.MbcalError` a plugin raises itself.  ``predict`` and ``visible`` are
+    called through here while they are traced, never in the compiled programs: no cost on a warm
+    solve.  ``where``: the place the error is about (the measurement being checked).
+    """
+    bound = getattr(model, method)
+    if type(model).__module__.startswith("mbcal."):
+        return bound(*args)
+    try:
+        return bound(*args)
+    except MbcalError:
+        raise
+    except Exception as err:
+        raise MeasurementModelError(
+            f"{describe(model)} failed in {method}: {type(err).__name__}: {err}",
+            where,
+            hint="an error in the plugin's code, not in the model or the measurements",
+        ) from err
 
 
 def get_model(kind: str) -> MeasurementModel:

@@ -19,7 +19,7 @@ import numpy as np
 
 from mbcal.errors import MbcalError, MeasurementFileError, SourceSpan, shown, suggest
 from mbcal.measurements.protocol import MeasurementModel
-from mbcal.measurements.registry import declared_models, registry
+from mbcal.measurements.registry import call_model, declared_models, registry
 from mbcal.units import ANGLE, DIMENSIONLESS, LENGTH, UNITS, Dim, describe
 
 __all__ = [
@@ -585,7 +585,7 @@ class SetBuilder:
         value = self._values(record, mm, where, factor)
         cov = self._covariance(record, mm, where, factor)
         if self.model is not None:
-            message = mm.check(self.model, ref_index, data)
+            message = call_model(mm, "check", self.model, ref_index, data, where=where)
             if message:
                 raise MeasurementFileError(message, where)
         if len(self.measurements) >= MAX_MEASUREMENTS:
