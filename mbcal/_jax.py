@@ -19,8 +19,9 @@ import importlib.util
 import os
 import sys
 import threading
-from collections.abc import Callable
-from typing import Any
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from typing import Any, ParamSpec, TypeVar
 
 import jax
 import jax.numpy as jnp
@@ -34,12 +35,52 @@ __all__ = [
     "jax",
     "jnp",
     "jit",
+    "float64",
+    "in_float64",
     "compiler_options",
     "to_device",
     "as_argument",
     "on_host",
     "release_memory",
 ]
+
+_P = ParamSpec("_P")
+_R = TypeVar("_R")
+
+
+@contextmanager
+def float64() -> Iterator[None]:
+    """JAX in float64 inside the block, whatever the caller switched after importing mbcal.
+
+    ``import mbcal`` turns ``jax_enable_x64`` on, but a caller may turn it off again (for float32
+    code of their own, or another library does).  mbcal's estimation must not then run in float32
+    — the solvers silently ~10⁵× less precise — nor stop on a saved program compiled for float64
+    ("Dtype mismatch").  Restoring float64 is safe, and better than refusing: ``jax.enable_x64``
+    sets the value in force in this thread only, for the block only, so the caller's own JAX
+    code keeps the caller's setting after it; JAX keys its traces and compiled programs on the
+    setting, so no float32 program is reused here or a float64 one there; and what mbcal's entry
+    points return is NumPy.  A thread started inside the block does not inherit the setting:
+    its work enters this block itself.  With float64 already on (the usual case) nothing is
+    switched.
+    """
+    if jax.enable_x64.value:  # the value in force in this thread
+        yield
+        return
+    with jax.enable_x64(True):
+        yield
+
+
+def in_float64(function: Callable[_P, _R]) -> Callable[_P, _R]:
+    """``function`` run inside :func:`float64`: the guard of mbcal's estimation entry points
+    (``least_squares``, ``least_squares_structured``, ``calibrate``, ``observe``, ``simulate``)."""
+
+    @functools.wraps(function)
+    def guarded(*args: _P.args, **kwargs: _P.kwargs) -> _R:
+        with float64():
+            return function(*args, **kwargs)
+
+    return guarded
+
 
 # XLA:CPU options for mbcal's programs (issue 16).  XLA:CPU's newer MLIR "fusion emitters" took
 # half of a cold first call (the room's solver: 1.5 s of compile CPU, 0.8 s with XLA's classic

@@ -20,7 +20,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from mbcal._jax import jax, release_memory
+from mbcal._jax import in_float64, jax, release_memory
 from mbcal.errors import SolverError
 from mbcal.errors import suggest as suggest_name
 from mbcal.fit import FitConfig, assess_fit, assess_plan, distinct_minima
@@ -401,6 +401,7 @@ def _analysed_by_blocks(structure: Structure | None, analysis: str) -> bool:
     return analysis == "structured" or structure.m * structure.n > DENSE_ANALYSIS_ENTRIES
 
 
+@in_float64
 def calibrate(
     model: Model,
     measurements: MeasurementSet,
@@ -582,6 +583,7 @@ def _load_analysis_programs(problem: Problem, structure: Structure | None, x: np
     if structure is not None:
         structure.arrays()  # built once here, not by both threads at the same time
 
+    @in_float64  # a thread does not inherit calibrate's float64 (mbcal._jax.float64)
     def load() -> None:
         try:
             if structure is None:
@@ -697,6 +699,7 @@ def _calibrate_by_blocks(
     return _result(problem, solved, x, x_init, obs, rows, verdict, o, config, t0)
 
 
+@in_float64
 def simulate(
     model: Model,
     plan: MeasurementSet,
@@ -777,6 +780,7 @@ def simulate(
     return out
 
 
+@in_float64
 def observe(
     model: Model,
     plan: MeasurementSet,

@@ -27,14 +27,13 @@ imported, or a later ``jax_enable_x64 = False``, does not make J float32).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterator, Mapping, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal, NamedTuple
 
 import numpy as np
 
-from mbcal._jax import jax, jnp
+from mbcal._jax import float64, jax, jnp
 from mbcal.errors import KinematicsError, ParameterError, UnknownNameError, UnreachableError, suggest
 from mbcal.geometry.transforms import rpy_from_matrix
 from mbcal.language import ir, soa
@@ -69,13 +68,6 @@ _PARTS = {"full": slice(0, 6), "position": slice(0, 3), "orientation": slice(3, 
 
 SINGULAR = 1e-13
 """JJᵀ + λ²I counts as singular when its eigenvalues' ratio falls below this (cond(J) > ~3e6)."""
-
-
-@contextmanager
-def float64() -> Iterator[None]:
-    """JAX in float64 inside the block, whatever the caller switched before or after importing mbcal."""
-    with jax.enable_x64(True):
-        yield
 
 
 class Forward(NamedTuple):

@@ -43,7 +43,7 @@ from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
-from mbcal._jax import as_argument, jax, jit, jnp
+from mbcal._jax import as_argument, in_float64, jax, jit, jnp
 from mbcal.cache import Hasher, exported
 from mbcal.errors import SolverError
 from mbcal.staging import StaleRecipeError, forget, prepare
@@ -786,6 +786,7 @@ def _compiled(
     return jit(batch_bounded)
 
 
+@in_float64
 def least_squares(
     fun: Callable[..., Array],
     x0: Array,

@@ -47,7 +47,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from mbcal._jax import as_argument, jax, jit, jnp, release_memory
+from mbcal._jax import as_argument, in_float64, jax, jit, jnp, release_memory
 from mbcal.cache import Hasher, exported
 from mbcal.datasets.bal import BalProblem
 from mbcal.errors import SolverError
@@ -576,6 +576,7 @@ def _compiled(
     return jit(batch_bounded)
 
 
+@in_float64
 def least_squares_structured(
     fun: Callable[..., Array],
     x0: Array,

@@ -229,3 +229,31 @@ def test_a_kind_whose_value_is_fixed_refuses_a_value_and_bounds_are_a_pair(tmp_p
             measurements_from_records([{**base, **extra}], model)
     with pytest.raises(SolverError, match=r"bounds must be \(lower, upper\)"):
         least_squares(lambda x: x, [[1.0, 2.0]], bounds=([0.0, 0.0],))
+
+
+def test_estimation_runs_in_float64_when_the_caller_turned_x64_off_after_import(room):
+    """`jax_enable_x64 = False` after `import mbcal` made least_squares silently run in float32
+    (Misra1a ~1e-5 off the certified values) and calibrate stop on a saved float64 program
+    ("Dtype mismatch") or solve in float32; the caller's setting is left as it was."""
+    import jax
+    import jax.numpy as jnp
+
+    def residual(b, x, y):  # Misra1a from the NIST StRD
+        return b[0] * (1 - jnp.exp(-b[1] * x)) - y
+
+    x = np.array([77.6, 114.9, 141.1, 190.8, 239.9, 289.0, 332.8, 378.4, 434.8, 477.3, 536.8, 593.1, 689.1, 760.0])
+    y = np.array([10.07, 14.73, 17.94, 23.93, 29.61, 35.18, 40.02, 44.82, 50.76, 55.05, 61.01, 66.40, 75.47, 81.78])
+    certified = np.array([2.3894212918e02, 5.5015643181e-04])
+    plan = mbcal.read_measurements(MEASUREMENTS / "room_plan.csv", room)
+    with jax.enable_x64(False):  # in force in this thread, as jax.config.update would be
+        fit = least_squares(
+            residual, np.array([[500, 1e-4]]), args=(x, y), config=mbcal.SolverConfig(max_iterations=200)
+        )
+        data = mbcal.simulate(room, plan, {"room.x": 0.02}, noise=0.0, seed=1)
+        result = mbcal.calibrate(room, data, ["room.*"], restarts=2)
+        analysis = mbcal.observe(room, plan, ["room.*"])
+        assert not jax.config.read("jax_enable_x64")  # the caller's setting, unchanged
+    assert fit.x_best.dtype == np.float64
+    np.testing.assert_allclose(fit.x_best, certified, rtol=1e-8)
+    assert abs(result.values["room.x"] - 0.02) < 1e-10 and result.ok
+    assert analysis.ok
