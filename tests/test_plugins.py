@@ -323,3 +323,37 @@ def test_a_plugin_failing_on_the_command_line_exits_2_naming_it_and_its_package(
     assert out.returncode == 2, out.stderr[-3000:]
     assert "measurement model 'boom' (package boom-plugin) failed in predict: ValueError: plugin bug" in out.stderr
     assert "Traceback" not in out.stderr
+
+
+def test_the_plugin_guide_s_example_model_and_measurements_solve_with_the_example_plugin(installed_plugin, tmp_path):
+    """docs/plugins.md showed a measurement file of 'height' and no model to use it with; the
+    model must list the kind in its 'measure' statement (every bundled model has one), or the
+    file is refused.  The page's model, file and command run as written."""
+    import re
+
+    text = (ROOT / "docs" / "plugins.md").read_text(encoding="utf-8")
+    fences = re.findall(r"^```(\w*)\n(.*?)^```", text, re.S | re.M)
+    (model,) = [body for language, body in fences if language == "mdl"]
+    assert re.search(r"^measure .*\bheight\b", model, re.M)
+    (csv,) = [body for language, body in fences if not language and body.startswith("kind,point,value")]
+    (command,) = [body for language, body in fences if language == "sh" and "heights.csv" in body]
+    (tmp_path / "heights.csv").write_text(csv, encoding="utf-8")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(installed_plugin), os.environ.get("PYTHONPATH", "")])}
+    args = command.split()
+    assert args[0] == "mbcal"
+
+    def solve(text: str) -> subprocess.CompletedProcess:
+        (tmp_path / "shelf.mdl").write_text(text, encoding="utf-8")
+        return subprocess.run(
+            [sys.executable, "-m", "mbcal", *(a.strip("'") for a in args[1:]), "--quiet"],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=600,
+            cwd=tmp_path,
+        )
+
+    out = solve(model)
+    assert out.returncode == 0, out.stderr[-3000:]
+    refused = solve(model.replace(", height", ""))  # the kind not listed: the file is refused
+    assert refused.returncode == 2 and "'height' is not one of them" in refused.stderr, refused.stderr[-3000:]
