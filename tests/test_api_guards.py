@@ -257,3 +257,24 @@ def test_estimation_runs_in_float64_when_the_caller_turned_x64_off_after_import(
     np.testing.assert_allclose(fit.x_best, certified, rtol=1e-8)
     assert abs(result.values["room.x"] - 0.02) < 1e-10 and result.ok
     assert analysis.ok
+
+
+def test_a_measurement_set_is_indexed_like_the_list_the_docs_call_it(room):
+    """docs/api.md: 'a set is a list of Measurement objects', but plan[0] raised TypeError
+    ('MeasurementSet' object is not subscriptable)."""
+    from mbcal.measurements.sets import MeasurementSet
+
+    plan = mbcal.read_measurements(MEASUREMENTS / "room_plan.csv", room)
+    items = list(plan)
+    assert plan[0] is items[0] and plan[-1] is items[-1] and plan[np.int64(2)] is items[2]
+    first = plan[:5]
+    assert isinstance(first, MeasurementSet) and list(first) == items[:5]
+    assert first.known == plan.known and first.configurations == plan.configurations and first.path == plan.path
+    assert list(plan[::-1]) == items[::-1] and len(plan[len(plan) :]) == 0
+    with pytest.raises(IndexError, match=f"measurement index {len(plan)} is out of range: the set has {len(plan)} "):
+        plan[len(plan)]
+    for bad in ("lever.tip", True, 1.0):
+        with pytest.raises(TypeError, match="indexed by position \\(an int\\) or a slice"):
+            plan[bad]
+    data = mbcal.simulate(room, plan[:20], {"room.x": 0.01}, noise=0)  # a slice is a set mbcal takes
+    assert len(data) == 20

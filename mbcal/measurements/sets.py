@@ -10,10 +10,11 @@ checked measurements — :mod:`mbcal.measurements.io` reads and writes the files
 from __future__ import annotations
 
 import math
+import operator
 import re
 from collections.abc import Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any, NoReturn
+from typing import Any, NoReturn, SupportsIndex, overload
 
 import numpy as np
 
@@ -257,6 +258,30 @@ class MeasurementSet:
     def __iter__(self):
         return iter(self.measurements)
 
+    @overload
+    def __getitem__(self, index: SupportsIndex) -> Measurement: ...
+
+    @overload
+    def __getitem__(self, index: slice) -> MeasurementSet: ...
+
+    def __getitem__(self, index: SupportsIndex | slice) -> Measurement | MeasurementSet:
+        """``ms[i]``: the i-th measurement (negative from the end, as a list); ``ms[a:b]``: a
+        :class:`MeasurementSet` of those measurements with this set's known values,
+        configurations, path and images, as :meth:`subset` gives (a set, so that it can be
+        calibrated, simulated or written)."""
+        if isinstance(index, slice):
+            return self._with_measurements(self.measurements[index])
+        if isinstance(index, (bool, np.bool_)) or not hasattr(index, "__index__"):
+            raise TypeError(
+                f"a measurement set is indexed by position (an int) or a slice, not {type(index).__name__}; "
+                "subset(keep) takes a flag per measurement"
+            )
+        i = operator.index(index)
+        n = len(self.measurements)
+        if not -n <= i < n:
+            raise IndexError(f"measurement index {i} is out of range: the set has {n} measurement{'s' * (n != 1)}")
+        return self.measurements[i]
+
     @property
     def config_names(self) -> list[str]:
         """Configurations in order: those with known values first, then as measurements name them."""
@@ -284,7 +309,9 @@ class MeasurementSet:
 
     def subset(self, keep: Iterable[bool]) -> MeasurementSet:
         """Only the measurements where ``keep`` is true."""
-        ms = [m for m, k in zip(self.measurements, keep) if k]
+        return self._with_measurements([m for m, k in zip(self.measurements, keep) if k])
+
+    def _with_measurements(self, ms: list[Measurement]) -> MeasurementSet:
         return MeasurementSet(
             ms, dict(self.known), {k: dict(v) for k, v in self.configurations.items()}, self.path, dict(self.images)
         )
