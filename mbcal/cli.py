@@ -1187,7 +1187,7 @@ def _register_commands(sub) -> None:
         """,
         cmd_detect,
     )
-    p.add_argument("images", metavar="IMAGE", nargs="+", help="images of the target")
+    p.add_argument("images", metavar="IMAGE", nargs="+", help="images of the target, one by one (DIR/*.png)")
     p.add_argument("--target", required=True, metavar="MODEL.mdl", help="the model with the target and the camera")
     p.add_argument("--name", metavar="TARGET", help="which target of the model (default: its only one)")
     p.add_argument("--camera", metavar="NAME", help="the camera that took the images (default: the first)")

@@ -15,9 +15,11 @@ import atexit
 import contextlib
 import io
 import os
+import shlex
 import threading
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -481,10 +483,19 @@ def save_figure(fig, path, *, dpi: int = 110) -> None:
     atomic_write(path, buf.getvalue())
 
 
+def check_image_path(path) -> None:
+    """Refuse a folder given where an image is expected, with the glob that was likely meant
+    (``mbcal detect DIR`` said only "[Errno 21] Is a directory")."""
+    if Path(path).is_dir():
+        pattern = shlex.quote(str(Path(path))) + "/*.png"  # the glob outside the quotes: the shell expands it
+        raise MbcalError(f"{path} is a folder, not an image", hint=f"give the images, e.g. {pattern}")
+
+
 def load_image(path) -> np.ndarray:
     """An RGB image from a file, as (H, W, 3) uint8."""
     from PIL import Image, UnidentifiedImageError  # pillow: loaded when a picture is read
 
+    check_image_path(path)
     try:
         with Image.open(path) as img:
             return np.asarray(img.convert("RGB"))

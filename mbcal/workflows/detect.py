@@ -27,7 +27,7 @@ import numpy as np
 from mbcal.errors import MbcalError
 from mbcal.language.targets import SQUARE_CORNERS
 from mbcal.measurements.sets import measurements_from_records
-from mbcal.render.views import load_image
+from mbcal.render.views import check_image_path, load_image
 from mbcal.workflows.cameras import homography
 
 __all__ = ["require_opencv", "detect_chessboard", "detect_squares", "detect_images", "Detection"]
@@ -195,6 +195,8 @@ def detect_images(
     if not model.cameras:
         raise MbcalError("the model has no camera for the image points")
     cam = model.cameras[model.camera_index(camera)] if camera else model.cameras[0]
+    for item in images:  # a folder among them is refused before any image is searched
+        check_image_path(item)
     records, detections = [], []
     taken: set[str] = set()
     for item in images:

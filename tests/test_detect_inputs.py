@@ -1,0 +1,53 @@
+"""What 'mbcal detect' is given: folders, the same image twice, images of more than 8 bits."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+import mbcal
+from mbcal.errors import MbcalError
+from mbcal.workflows.detect import detect_images
+
+from conftest import MODELS, shared_data
+
+pytest.importorskip("cv2")
+
+
+def zhang_image_model(tmp_path):
+    """The bundled camera model with Zhang's target (8 × 8 squares) and his camera's size."""
+    text = (
+        (MODELS / "camera_calibration.mdl")
+        .read_text()
+        .replace(
+            "chessboard(rows = 6, cols = 9, square = 25 mm)",
+            "squares(rows = 8, cols = 8, size = 0.5 inch, pitch = 0.888889 inch)",
+        )
+    )
+    path = tmp_path / "zhang.mdl"
+    path.write_text(text)
+    return path
+
+
+def detect(*args, cwd=None):
+    return subprocess.run(
+        [sys.executable, "-m", "mbcal", "detect", *map(str, args)], capture_output=True, text=True, cwd=cwd, timeout=600
+    )
+
+
+def test_a_folder_given_as_an_image_is_refused_with_the_glob_that_was_meant(tmp_path):
+    """'mbcal detect DIR' said "cannot read image DIR: [Errno 21] Is a directory"."""
+    model_path = zhang_image_model(tmp_path)
+    folder = tmp_path / "zh dir"
+    folder.mkdir()
+    image = shared_data("zhang", "CalibIm1.png")
+    result = detect(image, "zh dir", "--target", model_path, "-o", "corners.json", cwd=tmp_path)
+    assert result.returncode == 2
+    assert "zh dir is a folder, not an image" in result.stderr
+    assert "give the images, e.g. 'zh dir'/*.png" in result.stderr  # the glob outside the quotes
+    assert "Errno" not in result.stderr
+    assert not (tmp_path / "corners.json").exists()
+    with pytest.raises(MbcalError, match="is a folder, not an image"):
+        detect_images(mbcal.load_model(model_path), [str(folder)])
