@@ -713,6 +713,12 @@ def cmd_detect(args: argparse.Namespace) -> int:
     missed = [d.image for d in detections if not d.found]
     lines = [f"wrote {args.output}: {len(data)} corners in {len(detections) - len(missed)} of {len(detections)} images"]
     lines += [f"  not found in {m}" for m in missed]
+    lines += [
+        f"  warning: {d.image} is the same file as {d.same_as} (a copy?): its corners are a second view of the "
+        "same ones and make σ too small"
+        for d in detections
+        if d.same_as
+    ]
     _say(args, "\n".join(lines))
     return EXIT_OK if not missed else EXIT_UNTRUSTED
 

@@ -51,3 +51,27 @@ def test_a_folder_given_as_an_image_is_refused_with_the_glob_that_was_meant(tmp_
     assert not (tmp_path / "corners.json").exists()
     with pytest.raises(MbcalError, match="is a folder, not an image"):
         detect_images(mbcal.load_model(model_path), [str(folder)])
+
+
+def test_an_image_given_twice_is_refused_and_a_copy_is_named(tmp_path):
+    """The same image twice became two views (CalibIm1, CalibIm1_2) of the same corners, and σ
+    shrank silently; calibrate-camera already refused a file given twice."""
+    model_path = zhang_image_model(tmp_path)
+    image = shared_data("zhang", "CalibIm1.png")
+    (tmp_path / "zh dir").mkdir()
+    local = tmp_path / "zh dir" / "CalibIm1.png"
+    local.write_bytes(image.read_bytes())
+    twice = detect("zh dir/CalibIm1.png", "./zh dir/CalibIm1.png", "--target", model_path, "-o", "c.json", cwd=tmp_path)
+    assert twice.returncode == 2
+    assert "./zh dir/CalibIm1.png is given twice (as zh dir/CalibIm1.png)" in twice.stderr
+    assert not (tmp_path / "c.json").exists()
+    with pytest.raises(MbcalError, match="is given twice"):
+        detect_images(mbcal.load_model(model_path), [str(local), str(local)])
+    # a copy under another name: detected (it may be meant), but named as one
+    copy = tmp_path / "zh dir" / "copy.png"
+    copy.write_bytes(image.read_bytes())
+    result = detect(local, copy, "--target", model_path, "-o", "c.json", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert f"warning: {copy} is the same file as {local}" in result.stdout
+    _, detections = detect_images(mbcal.load_model(model_path), [str(local), str(copy)])
+    assert [d.same_as for d in detections] == [None, str(local)]

@@ -17,6 +17,7 @@ Each image becomes one configuration (named after the file) of the measurement f
 
 from __future__ import annotations
 
+import hashlib
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -159,10 +160,21 @@ class Detection:
     image: str
     config: str
     corners: np.ndarray | None
+    same_as: str | None = None
+    """An earlier image of the call with the very same bytes (a copy under another name): its
+    corners would count twice, as two views, and make σ too small."""
 
     @property
     def found(self) -> bool:
         return self.corners is not None
+
+
+def _digest(path: Path) -> str | None:
+    """The file's SHA-256 (None when it cannot be read again: it was just read as an image)."""
+    try:
+        return hashlib.sha256(path.read_bytes()).hexdigest()
+    except OSError:
+        return None
 
 
 def _config_name(path: Path, taken: set[str]) -> str:
@@ -183,7 +195,9 @@ def detect_images(
     ------
     MbcalError
         The target cannot be detected automatically (a ``points`` target), an image is
-        unreadable or has another size than the camera, or the target is found in no image.
+        unreadable, a folder, named twice (the same resolved path) or has another size than the
+        camera, or the target is found in no image.  A copy under another name (the same bytes) is
+        detected, and named in its :attr:`Detection.same_as`.
     """
     require_opencv()
     info = model.target(target)
@@ -195,13 +209,22 @@ def detect_images(
     if not model.cameras:
         raise MbcalError("the model has no camera for the image points")
     cam = model.cameras[model.camera_index(camera)] if camera else model.cameras[0]
-    for item in images:  # a folder among them is refused before any image is searched
+    seen: dict[Path, str] = {}
+    for item in images:  # a folder, or an image named twice, is refused before any image is searched
         check_image_path(item)
+        key = Path(item).resolve()
+        if key in seen:  # it would become a second view (CalibIm1_2) of the same corners: σ too small
+            also = f" (as {seen[key]})" if seen[key] != str(item) else ""
+            raise MbcalError(f"{item} is given twice{also}", hint="each image is one view: give it once")
+        seen[key] = str(item)
     records, detections = [], []
     taken: set[str] = set()
+    digests: dict[str, str] = {}  # content → the first image with it
     for item in images:
         path = Path(item)
         image = load_image(path)
+        digest = _digest(path)
+        same_as = digests.setdefault(digest, str(path)) if digest else None
         if image.shape[:2] != (cam.height, cam.width):
             raise MbcalError(
                 f"{path} is {image.shape[1]}×{image.shape[0]} pixels but camera '{cam.name}' is "
@@ -212,7 +235,7 @@ def detect_images(
             corners = detect_chessboard(image, info.rows, info.cols)
         else:
             corners = detect_squares(image, info.rows, info.cols, info.size_ratio)
-        detections.append(Detection(str(path), config, corners))
+        detections.append(Detection(str(path), config, corners, same_as if same_as != str(path) else None))
         if corners is None:
             continue
         for name, (u, v) in zip(info.points, corners):
