@@ -1185,8 +1185,10 @@ def _register_commands(sub) -> None:
         """
         Detect the model's target (a chessboard, or a grid of squares like Zhang's) in every image
         with OpenCV and write its corners as image_point measurements, one configuration per
-        image (named after the file).  Needs OpenCV: pip install 'mbcal[vision]'.  Exit status 1
-        when the target was not found in some image (they are listed).
+        image (named after the file).  A greyscale image of more than 8 bits (16-bit PNG or
+        TIFF, float) is scaled from its darkest to its brightest pixel.  Needs OpenCV: pip install
+        'mbcal[vision]'.  Exit status 1 when the target was not found in some image (they are
+        listed).
         """,
         """
         mbcal detect views/*.png --target models/camera_calibration.mdl -o corners.json

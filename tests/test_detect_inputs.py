@@ -5,6 +5,7 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 import mbcal
@@ -75,3 +76,41 @@ def test_an_image_given_twice_is_refused_and_a_copy_is_named(tmp_path):
     assert f"warning: {copy} is the same file as {local}" in result.stdout
     _, detections = detect_images(mbcal.load_model(model_path), [str(local), str(copy)])
     assert [d.same_as for d in detections] == [None, str(local)]
+
+
+def test_a_16_bit_greyscale_image_is_scaled_to_8_bits_and_its_corners_found(tmp_path):
+    """A 16-bit greyscale PNG (mode I;16, a mono machine-vision camera's) was converted to RGB by
+    clipping every value above 255 to white: 'board not found'.  Its own range now maps to 0-255."""
+    from PIL import Image
+
+    from mbcal.render.views import load_image
+
+    model_path = zhang_image_model(tmp_path)
+    model = mbcal.load_model(model_path)
+    grey = np.asarray(Image.open(shared_data("zhang", "CalibIm1.png")).convert("L"))
+    # an 8-bit image of the full range 0-255, and the same as 16 bits (×256) and as 12 bits (×16)
+    full = np.rint((grey - grey.min()) * (255.0 / (grey.max() - grey.min()))).astype(np.uint16)
+    Image.fromarray(full.astype(np.uint8)).save(tmp_path / "view8.png")
+    Image.fromarray(full * 256).save(tmp_path / "view16.png")
+    Image.fromarray(full * 16).save(tmp_path / "view12.png")
+    Image.fromarray(grey.astype(np.uint16) * 256).save(tmp_path / "CalibIm1.png")  # Zhang's own range, 0-248
+    assert Image.open(tmp_path / "view16.png").mode == "I;16"
+    assert np.array_equal(load_image(tmp_path / "view16.png"), load_image(tmp_path / "view8.png"))
+    result = detect(tmp_path / "CalibIm1.png", "--target", model_path, "-o", tmp_path / "c.json")
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "256 corners in 1 of 1 images" in result.stdout
+    names = ["view8.png", "view16.png", "view12.png", "CalibIm1.png"]
+    _, found = detect_images(model, [str(tmp_path / name) for name in names])
+    corners = [d.corners for d in found]
+    assert all(c is not None and c.shape == (256, 2) for c in corners)
+    assert np.array_equal(corners[1], corners[0])  # the same pixels: the same corners
+    assert np.abs(corners[2] - corners[0]).max() < 0.01  # 12 bits in 16: ~0.005 px (its range is 0-4080)
+    assert np.abs(corners[3] - corners[0]).max() < 0.01
+
+
+def test_a_float_image_with_nan_and_a_flat_image_load_as_8_bits():
+    from mbcal.render.views import _to_8_bits
+
+    a = np.array([[0.0, np.nan], [0.5, 1.0]], dtype=np.float32)
+    assert _to_8_bits(a)[..., 0].tolist() == [[0, 0], [128, 255]]
+    assert _to_8_bits(np.full((2, 2), 7, dtype=np.uint16)).max() == 0

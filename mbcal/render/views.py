@@ -491,13 +491,39 @@ def check_image_path(path) -> None:
         raise MbcalError(f"{path} is a folder, not an image", hint=f"give the images, e.g. {pattern}")
 
 
+def _wide_grey(img) -> bool:
+    """A greyscale image of more than 8 bits a pixel: 16-bit (``I;16``, ``I;16B``…, a mono
+    machine-vision camera's PNG or TIFF), 32-bit integer (``I``) or floating point (``F``)."""
+    return img.mode in ("I", "F") or img.mode.startswith("I;16")
+
+
+def _to_8_bits(values: np.ndarray) -> np.ndarray:
+    """A wide greyscale image as (H, W, 3) uint8, scaled linearly from its own range (its darkest
+    pixel 0, its brightest 255): a 10- or 12-bit sensor's values in a 16-bit file, or a float
+    image, have no fixed full scale.  Pillow's convert("RGB") clipped every value above 255 to
+    white, and a 16-bit image of a target became a white page ("board not found").  Pixels that
+    are not finite (a float image's NaN) become 0; an image of one value is black."""
+    a = np.asarray(values, dtype=np.float64)
+    finite = np.isfinite(a)
+    out = np.zeros(a.shape, dtype=np.uint8)
+    if finite.any():
+        lo, hi = float(a[finite].min()), float(a[finite].max())
+        if hi > lo:
+            out[finite] = np.clip(np.rint((a[finite] - lo) * (255.0 / (hi - lo))), 0, 255).astype(np.uint8)
+    return np.repeat(out[..., None], 3, axis=2)
+
+
 def load_image(path) -> np.ndarray:
-    """An RGB image from a file, as (H, W, 3) uint8."""
+    """An RGB image from a file, as (H, W, 3) uint8.  A greyscale image of more than 8 bits a
+    pixel (16-bit, 32-bit, float) is scaled from its own darkest to its brightest value
+    (:func:`_to_8_bits`)."""
     from PIL import Image, UnidentifiedImageError  # pillow: loaded when a picture is read
 
     check_image_path(path)
     try:
         with Image.open(path) as img:
+            if _wide_grey(img):
+                return _to_8_bits(np.asarray(img))
             return np.asarray(img.convert("RGB"))
     except FileNotFoundError:
         raise MbcalError(f"image not found: {path}") from None
