@@ -14,6 +14,7 @@ import contextlib
 import json
 import math
 import os
+import shlex
 import signal
 import sys
 import textwrap
@@ -391,6 +392,22 @@ def _background(model, camera: str, path: str, option: str) -> np.ndarray:
     return image
 
 
+def _photo_alone(model, value: str) -> None:
+    """render's --background is a photo of the camera it renders from; solve's CAMERA=IMAGE form
+    given to it (no such file, a camera's name before the '=') is refused with render's form."""
+    name, eq, path = value.partition("=")
+    if not eq or Path(value).exists():
+        return
+    try:
+        camera = model.resolve("camera", name)
+    except MbcalError:
+        return  # not a camera's name: the file is reported missing as it is
+    raise MbcalError(
+        f"--background {value}: render takes the photo alone (CAMERA=IMAGE is solve's form)",
+        hint=f"--camera {model.short_name('camera', camera)} --background {shlex.quote(path)}",
+    )
+
+
 def _image_fits(model, camera: str, path: str, what: str) -> None:
     """An image a measurement file names, checked before the work: it exists, is an image and has
     the camera's size (its header only: the pixels are read when it is drawn on)."""
@@ -655,6 +672,8 @@ def cmd_render(args: argparse.Namespace) -> int:
     if not model.cameras:
         raise MbcalError(f"{args.model} has no camera to render from")
     camera = model.resolve("camera", args.camera) if args.camera else model.cameras[0].name
+    if args.background is not None:
+        _photo_alone(model, args.background)  # before the rendering
     scene = modeler(model, parameter_vector(model, _check_values(model, parse_assignments(args.set or [], model))))
     # The depth pass is for the wireframe's occlusion only.
     view = render_view(scene, camera, points=args.points and not args.wireframe, depth=bool(args.wireframe))
@@ -1079,7 +1098,7 @@ def _register_commands(sub) -> None:
         "--background",
         action="append",
         metavar="CAMERA=IMAGE",
-        help="the real image of a camera, for the overlays; repeatable",
+        help="the real image of a camera, for the overlays; repeatable (one per camera)",
     )
     p.add_argument("--plot", metavar="RESIDUALS.png", help="write a residual plot (PNG)")
     _quiet_option(p, "print nothing (use the exit status, --json)")
@@ -1141,10 +1160,10 @@ def _register_commands(sub) -> None:
         "render",
         "render a model camera's view headlessly (PNG), optionally over a photo",
         """
-        Render the scene from a model camera (pyrender, off screen).  With --background the model is
-        drawn over a real photo of that camera; with --wireframe as its visible edges (occluded edges
-        hidden).  Lines and points are projected with the camera's distortion; the shaded rendering
-        itself is pinhole.
+        Render the scene from a model camera (pyrender, off screen).  With --background PHOTO the
+        model is drawn over a real photo of that camera (the one of --camera); with --wireframe as
+        its visible edges (occluded edges hidden).  Lines and points are projected with the
+        camera's distortion; the shaded rendering itself is pinhole.
         """,
         """
         mbcal render models/teleexistence.mdl --camera eyes.left --set lever.angle=40deg -o left.png
@@ -1155,7 +1174,11 @@ def _register_commands(sub) -> None:
     p.add_argument("model", metavar="MODEL")
     p.add_argument("--camera", metavar="NAME", help="camera to render from (default: the first)")
     _set_option(p, "a parameter value; repeatable")
-    p.add_argument("--background", metavar="PHOTO", help="a real image of the camera to draw over")
+    p.add_argument(
+        "--background",
+        metavar="PHOTO",
+        help="a real image of the camera rendered from (--camera) to draw over; not CAMERA=IMAGE as for solve",
+    )
     p.add_argument("--wireframe", action="store_true", help="draw the model's visible edges")
     p.add_argument("--points", action="store_true", help="mark the named points")
     p.add_argument("-o", "--output", required=True, metavar="OUT.png")

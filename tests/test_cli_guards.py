@@ -114,6 +114,24 @@ def test_a_background_photo_of_the_wrong_size_is_refused_before_the_solve(tmp_pa
     assert after.shape[:2] == (453, 669) and (after == 90).all(axis=-1).mean() > 0.5  # drawn over the photo
 
 
+def test_render_takes_a_photo_alone_and_says_so_for_solves_camera_image_form(tmp_path):
+    """render --help documented --background PHOTO while docs/cli.md said every --background is
+    CAMERA=IMAGE (solve's form); given to render that form was 'image not found: eye=photo.png'."""
+    Image.fromarray(np.zeros((453, 669, 3), dtype=np.uint8)).save(tmp_path / "photo.png")
+    out = tmp_path / "r.png"
+    result = run("render", LEVER, "--background", "eye=photo.png", "-o", out, cwd=tmp_path)
+    assert result.returncode == 2
+    assert "--background eye=photo.png: render takes the photo alone (CAMERA=IMAGE is solve's form)" in result.stderr
+    assert "--camera eye --background photo.png" in result.stderr
+    assert not out.exists()
+    # each command's help and the documentation give the form it takes
+    assert "--background PHOTO" in run("render", "--help").stdout
+    assert "--background CAMERA=IMAGE" in run("solve", "--help").stdout
+    text = " ".join((MODELS.parent / "docs" / "cli.md").read_text().split())
+    assert "`render --background PHOTO` takes one photo" in text
+    assert "`solve --background CAMERA=IMAGE` names the camera" in text
+
+
 def test_joint_limits_the_wrong_way_round_are_an_error_at_the_lower_limit():
     text = "param q = 0 deg\nframe f {\n  joint revolute(z, q, lower = 30 deg, upper = -30 deg)\n}\n"
     with pytest.raises(MdlError) as info:
