@@ -443,6 +443,35 @@ def _active_bounds_text(r: CalibrationResult) -> list[str]:
     ]
 
 
+def _far_outside_ranges_text(r: CalibrationResult) -> list[str]:
+    """A note naming each estimate that lies outside its search range by more than half the range's
+    width.  The search ranges bound the random starts, not the estimates, so this is no error —
+    but an estimate that far out (cx = 608 px for a range of [220, 420], from corners in pixels
+    of another resolution) says that the data or the model are not what the ranges expected."""
+    parts = []
+    for i, name in enumerate(r.names):
+        info = r.problem.params.info(name)
+        lower, upper = getattr(info, "lower", None), getattr(info, "upper", None)
+        x = float(r.x[i])
+        if lower is None or upper is None or not upper > lower or not np.isfinite(x):
+            continue
+        if x < lower - (upper - lower) / 2 or x > upper + (upper - lower) / 2:
+            unit = r.unit(name)
+            parts.append(
+                f"{name} = {_value_cell(unit, x)} (search range [{_value_cell(unit, lower)}, "
+                f"{_value_cell(unit, upper)}])"
+            )
+    if not parts:
+        return []
+    return [
+        f"note: far outside the search range ({len(parts)}): "
+        + "; ".join(parts[:8])
+        + (" …" if len(parts) > 8 else ""),
+        "  the ranges only bound the random starts; an estimate this far out often means measurements in other "
+        "units or pixels, or a model that does not fit them",
+    ]
+
+
 def result_json(r: CalibrationResult) -> dict[str, Any]:
     """The calibration report as JSON-ready data."""
     units = {n: r.unit(n) for n in r.names}
@@ -626,6 +655,7 @@ def result_text(r: CalibrationResult, *, max_residuals: int = 15) -> str:
     out.append("")
     out.append(table(["parameter", "estimate", "σ", "initial"], rows, align="lrrr"))
     out.extend(_active_bounds_text(r))
+    out.extend(_far_outside_ranges_text(r))
     out.extend(_observability_text(r.observability, r.problem.params))
     out.extend(_points_text(r.points, r.problem.model))
     worst = r.residuals.worst(max_residuals)

@@ -411,3 +411,25 @@ def test_an_intrinsic_given_by_an_expression_shows_the_sigma_propagated_from_its
     assert fixed.intrinsics["cam"]["k3"] == (0.0, None)
     rows = {line.split()[0]: line for line in fixed.summary().split("per view:")[0].splitlines()[3:] if line.strip()}
     assert rows["k3"].endswith("fixed") and not rows["fy"].endswith("fixed")
+
+
+def test_zhangs_corners_doubled_are_refused_and_an_estimate_far_outside_its_range_is_noted(monkeypatch):
+    """Zhang's corners with u, v doubled (most outside his 640×480 image) were calibrated with cx
+    far outside its search range, 'consistent and well determined', exit 0."""
+    import mbcal.measurements.sets as sets
+
+    model = zhang_model(POINTS_FILE, skew=False)
+    records = [
+        {**vars_, "u": 2 * vars_["u"], "v": 2 * vars_["v"]}
+        for vars_ in ({"kind": m.kind, "config": m.config, **m.refs, "u": m.value[0], "v": m.value[1]} for m in
+                      zhang_corners(model))
+    ]  # fmt: skip
+    with pytest.raises(mbcal.MbcalError, match=r"of the 1280 image points of camera 'cam' lie outside its 640×480"):
+        mbcal.measurements_from_records(records, model)
+    # let through (as data built in Python would be): the report names the far-out estimates
+    monkeypatch.setattr(sets, "IMAGE_MARGIN", float("inf"))
+    cc = calibrate_cameras(model, mbcal.measurements_from_records(records, model))
+    note = next(line for line in cc.summary().splitlines() if line.startswith("note: far outside the search range"))
+    assert "cam.cx = " in note and "(search range [250, 390])" in note
+    plain = calibrate_cameras(model, zhang_corners(model))
+    assert "far outside the search range" not in plain.summary()

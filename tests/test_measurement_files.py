@@ -1142,3 +1142,37 @@ def test_an_override_of_a_parameter_without_a_unit_reads_units_as_set_does(overr
     with pytest.raises(UnitError, match=re.escape(error)) as info:
         load_model_text(text, "m.mdl")
     assert info.value.span is not None and info.value.span.line == 7
+
+
+def _corner_rows(u, v, points):
+    head = "id,kind,config,camera,point,u,v,sigma\n"
+    return head + "".join(
+        f"m{i},image_point,view1,cam,{p},{a},{b},0.5\n" for i, (p, a, b) in enumerate(zip(points, u, v))
+    )
+
+
+def test_image_points_mostly_outside_their_cameras_image_are_refused_at_the_first(tmp_path):
+    """Corners with u, v doubled (1204 of Zhang's 1280 outside the 640×480 image) were calibrated:
+    cx = 608 (its search range [220, 420]), 'consistent and well determined', exit 0."""
+    model = load_model(MODELS / "camera_calibration.mdl")  # cam: 640×480
+    points = model.target(None).points  # 54 corners
+    rng = np.random.default_rng(0)
+    u, v = rng.uniform(100, 540, len(points)), rng.uniform(80, 400, len(points))
+    read_measurements(write(tmp_path, "inside.csv", _corner_rows(u, v, points)), model)
+    # a margin of 10 % of the width and height: points just outside (-60 px, 700 px) are taken,
+    # and a few far outside are left to the fit's outliers
+    edge_u, edge_v = u.copy(), v.copy()
+    edge_u[:5], edge_v[5:10] = -60.0, 520.0
+    edge_u[10:20] = 5000.0
+    read_measurements(write(tmp_path, "edge.csv", _corner_rows(edge_u, edge_v, points)), model)
+    # doubled: most of them outside
+    path = write(tmp_path, "x2.csv", _corner_rows(2 * u, 2 * v, points))
+    first = int(np.argmax((2 * u > 704) | (2 * v > 528)))
+    outside = int(np.sum((2 * u > 704) | (2 * v > 528)))
+    assert outside > len(points) / 2
+    with pytest.raises(MeasurementFileError) as info:
+        read_measurements(path, model)
+    assert f"{outside} of the 54 image points of camera 'cam' lie outside its 640×480 image" in str(info.value)
+    assert f"measurement 'm{first}'" in str(info.value)
+    assert (info.value.span.line, info.value.span.column) == (first + 2, 1)
+    assert "another resolution, or scaled" in info.value.hint

@@ -38,6 +38,10 @@ __all__ = [
 
 DEFAULT_CONFIG = "default"
 MAX_MEASUREMENTS = 2_000_000
+IMAGE_MARGIN = 0.1
+"""How far an image point may lie outside its camera's image, as a fraction of the width (u) and
+height (v): a point beyond is *outside*.  A measurement file in which more than half of a camera's
+image points lie outside is refused (docs/camera-calibration.md)."""
 
 _DIMENSION_UNITS = {
     "length": {u for u, (_, d) in UNITS.items() if d.length == 1 and d.angle == 0},
@@ -467,6 +471,9 @@ class SetBuilder:
         # 108,000 (a dict each was ~20 MB; nothing mutates a measurement's refs).
         self._refs: dict[tuple[tuple[str, str], ...], dict[str, str]] = {}
         self._applies: dict[str, set[str]] = {}  # per kind: the keys a record of it may fill
+        # Per camera (its index): the image points with values, and those outside its image
+        # (:data:`IMAGE_MARGIN`), with the first of them (id, where, u, v): see _check_image_points.
+        self._image_points: dict[int, list[Any]] = {}
 
     def configuration(self, config: str, where: SourceSpan | None) -> None:
         """Note a configuration the file lists (with or without known values) and where."""
@@ -615,12 +622,48 @@ class SetBuilder:
             message = call_model(mm, "check", self.model, ref_index, data, where=where)
             if message:
                 raise MeasurementFileError(message, where)
+            if kind == "image_point" and value is not None and "camera" in ref_index:
+                self._image_point(ref_index["camera"], value, mid, where)
         if len(self.measurements) >= MAX_MEASUREMENTS:
             raise MeasurementFileError(f"more than {MAX_MEASUREMENTS} measurements", where)
         shared = self._refs.get(pairs := tuple(refs.items()))
         if shared is None and len(self._refs) < 100_000:
             shared = self._refs[pairs] = refs
         self.measurements.append(Measurement(mid, kind, config, shared or refs, value, cov, data or _NO_DATA, where))
+
+    def _image_point(self, camera: int, value: np.ndarray, mid: str, where: SourceSpan | None) -> None:
+        """Count an image point, and whether it lies outside its camera's image (by more than
+        :data:`IMAGE_MARGIN` of the width or height: lens distortion and corners detected at the
+        border are allowed for)."""
+        counts = self._image_points.get(camera)
+        if counts is None:
+            counts = self._image_points[camera] = [0, 0, None]
+        counts[0] += 1
+        info = self.model.cameras[camera]
+        u, v = float(value[0]), float(value[1])
+        mu, mv = IMAGE_MARGIN * info.width, IMAGE_MARGIN * info.height
+        if not (-mu <= u <= info.width + mu and -mv <= v <= info.height + mv):
+            counts[1] += 1
+            if counts[2] is None:
+                counts[2] = (mid, where, u, v)
+
+    def _check_image_points(self) -> None:
+        """Refuse a camera most of whose image points lie outside its image: they are not in its
+        pixels (another camera's resolution, scaled or doubled coordinates), and a fit to them
+        went far outside the search ranges and still looked 'consistent and well determined'."""
+        for camera, (total, outside, first) in self._image_points.items():
+            if outside * 2 <= total:  # a few stray points are the fit's outliers to report
+                continue
+            info = self.model.cameras[camera]
+            mid, where, u, v = first
+            raise MeasurementFileError(
+                f"{outside} of the {total} image points of camera '{self.model.short_name('camera', info.name)}' lie "
+                f"outside its {info.width}×{info.height} image (by more than {IMAGE_MARGIN:.0%} of its width or "
+                f"height), the first: measurement '{mid}' at u = {u:g}, v = {v:g}",
+                where,
+                hint="image points are in pixels of the camera's own image, (0, 0) its top-left corner: are they of "
+                "another resolution, or scaled?",
+            )
 
     def _values(self, record, mm: MeasurementModel, where, factor: float) -> np.ndarray | None:
         if mm.implicit_value is not None:
@@ -725,6 +768,7 @@ class SetBuilder:
         if not self.measurements:
             raise MeasurementFileError("no measurements", SourceSpan(self.path, 1, 1))
         self._check_configurations()
+        self._check_image_points()
         if self.model is not None and self.known:  # as --set: sizes positive, poses finite with them
             from mbcal.language.check import check_at_nominal
 
