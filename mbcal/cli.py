@@ -924,6 +924,25 @@ _nonnegative = _number(0.0, strict=False)
 _port = _whole(0, 65535, "a port from 0 (any free one) to 65535")
 
 
+def _sigma_length(text: str) -> float:
+    """An argparse type: a point's σ, a positive length with a unit as in models (``2mm``,
+    ``2 mm``, ``0.002 m``, as --set and --process-noise read them) or a plain number of metres.
+    A plain number stays metres (scripts wrote ``--sigma 0.002``); a user meaning millimetres gets
+    a σ a thousand times too large, which the fit's verdict names (reduced χ² < 0.1: σ stated too
+    large) and the report shows with its unit."""
+    parsed = _quantity(text.strip())
+    if parsed is None:
+        raise argparse.ArgumentTypeError(
+            f"'{text}' is not a length: give a number with a unit (2mm, '2 mm', 0.002m) or a plain number of metres"
+        )
+    value, dim, unit = parsed
+    if dim is not None and dim != LENGTH:
+        raise argparse.ArgumentTypeError(f"'{unit}' in '{text}' is not a unit of length (mm, cm, m, ...)")
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a positive length (2mm, or a plain number of metres), got '{text}'")
+    return value
+
+
 def _quantities(text: str, option: str, meant: Sequence[tuple[str, Any]] = ()) -> list[float]:
     """``0,-30deg,5cm`` → SI values, units as in models; plain numbers are SI (rad, m).  ``meant``:
     (name, dimension) of each value, where a unit of another dimension is an error."""
@@ -1071,7 +1090,12 @@ def _register_commands(sub) -> None:
     p.add_argument(
         "--scan-points", type=_count, default=2000, metavar="N", help="at most N points per scan (default 2000)"
     )
-    p.add_argument("--scan-sigma", type=float, metavar="M", help="σ of a scan point (default: the scan's)")
+    p.add_argument(
+        "--scan-sigma",
+        type=_sigma_length,
+        metavar="LENGTH",
+        help="σ of a scan point, with a unit (2mm) or a plain number of metres (default: the scan's)",
+    )
     p.add_argument("--sensor", metavar="NAME", help="the depth camera of depth-image scans (default: the only one)")
     _add_solver_options(p)
     p.add_argument("--restarts", type=int, default=32, metavar="N", help="random starting points (default 32)")
@@ -1492,7 +1516,13 @@ def _range_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--coarse", choices=["auto", "always", "never"], default="auto", help="global alignment (auto)")
     p.add_argument("--sensor", metavar="NAME", help="the depth camera of depth images (default: the only one)")
     p.add_argument("--frame", metavar="NAME", help="frame of point clouds (default: world)")
-    p.add_argument("--sigma", type=float, metavar="M", help="σ of a point in m (default 2 mm; depth: 1 mm + 0.1 %% z)")
+    p.add_argument(
+        "--sigma",
+        type=_sigma_length,
+        metavar="LENGTH",
+        help="σ of a point, with a unit (2mm, '2 mm') or a plain number of METRES (default 2 mm; depth: "
+        "1 mm + 0.1 %% z); a σ far too large (reduced χ² < 0.1) makes the fit not trustworthy",
+    )
 
 
 def _check_restarts(args: argparse.Namespace) -> None:

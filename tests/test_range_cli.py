@@ -128,3 +128,75 @@ def test_a_fit_that_fails_leaves_no_output_folder(tmp_path, capsys):
     assert main(["fit", ROOM, str(far), "--estimate", "room.*", "--out", str(out)]) == 2
     assert "scan points lie within" in capsys.readouterr().err
     assert not out.exists()
+
+
+def _scan_fit(chi2: float, dof: int):
+    from mbcal.range.fit import ScanFit
+
+    n = dof + 1
+    return ScanFit(
+        names=["room.x"], x=np.zeros(1), x_start=np.zeros(1), covariance=np.eye(1), information=np.eye(1),
+        chi2=chi2, dof=dof, points=np.zeros((n, 3)), residuals=np.zeros(n), sigma=np.full(n, 2e-3),
+        outlier=np.zeros(n, bool), cropped=0, far=np.zeros((0, 3)), total_points=n, misfits=[], coarse=None,
+        elapsed=0.0, converged=True, outlier_sigma=3.0,
+    )  # fmt: skip
+
+
+def test_a_scatter_far_below_sigma_is_not_trustworthy():
+    """σ stated too large hides a misfit (2 read as 2 m where 2 mm was meant: reduced χ² 2e-05 was
+    'verdict: ok'): reduced χ² < 0.1, improbable for its dof, is a doubt; a small χ² that chance
+    gives a few points, and a scatter a quiet sensor gives under its specified σ, are not."""
+    tiny = _scan_fit(2.19e-05 * 24225, 24225)
+    assert not tiny.ok and tiny.sigma_too_large
+    assert any("σ stated too large" in d for d in tiny.doubts)
+    assert "σ stated too large" in tiny.text().splitlines()[-1]
+    assert "σ stated too large" in " ".join(tiny.to_json()["doubts"]) and tiny.to_json()["ok"] is False
+    assert _scan_fit(0.3 * 24225, 24225).ok  # a sensor quieter than its σ: still ok
+    assert _scan_fit(0.05, 1).ok  # one degree of freedom: χ² 0.05 happens by chance
+    assert _scan_fit(1.0 * 100, 100).to_json()["doubts"] == []
+
+
+def test_sigma_takes_a_unit_and_a_plain_number_is_metres(tmp_path, capsys):
+    from mbcal.cli import build_parser
+
+    parser = build_parser()
+    for text, value in (("2mm", 0.002), ("2 mm", 0.002), ("0.002 m", 0.002), ("0.002", 0.002), ("0.5cm", 0.005)):
+        assert parser.parse_args(["fit", ROOM, "a.png", "--estimate", "room.*", "--sigma", text]).sigma == value
+        assert (
+            parser.parse_args(["watch", ROOM, "--scans", "s", "--out", "o", "--estimate", "r", "--sigma", text]).sigma
+            == value
+        )
+        assert (
+            parser.parse_args(["solve", ROOM, "a.png", "--estimate", "room.*", "--scan-sigma", text]).scan_sigma
+            == value
+        )
+    for text, why in (
+        ("2deg", "not a unit of length"),
+        ("two", "not a length"),
+        ("0mm", "positive"),
+        ("-1", "positive"),
+    ):
+        with pytest.raises(SystemExit) as stop:
+            parser.parse_args(["fit", ROOM, "a.png", "--estimate", "room.*", f"--sigma={text}"])
+        assert stop.value.code == 2
+        err = capsys.readouterr().err
+        assert "argument --sigma" in err and why in err, err
+    for command in ("fit", "watch"):
+        with pytest.raises(SystemExit):
+            main([command, "--help"])
+        assert "plain number of METRES" in " ".join(capsys.readouterr().out.split())
+
+
+@pytest.mark.slow
+def test_sigma_in_metres_meant_as_mm_does_not_hide_a_depth_scale_error(tmp_path, capsys):
+    """A depth image 10 % too deep fitted with --sigma 2 (metres; 2 mm was meant) was 'verdict: ok',
+    exit 0: now exit 1, σ stated too large; the same with --sigma 2mm is not trustworthy either."""
+    from mbcal.range.simulate import add_depth_noise, render_depth
+
+    model = mbcal.load_model(ROOM)
+    write_depth_png(tmp_path / "d.png", 1.1 * add_depth_noise(render_depth(model, TRUTH), 1e-3, 1e-3, seed=2))
+    assert main(["fit", ROOM, str(tmp_path / "d.png"), "--estimate", "room.*", "--sigma", "2"]) == 1
+    out = capsys.readouterr().out
+    assert "σ 2e+03 mm" in out and "verdict: NOT trustworthy (the inliers scatter far less than σ" in out
+    assert main(["fit", ROOM, str(tmp_path / "d.png"), "--estimate", "room.*", "--sigma", "2mm"]) == 1
+    assert "σ 2 mm" in capsys.readouterr().out

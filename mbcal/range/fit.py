@@ -77,9 +77,14 @@ __all__ = [
     "scan_world_points",
     "residuals_at",
     "BUCKET",
+    "TOO_SMALL_REDUCED_CHI2",
 ]
 
 BUCKET = 4096
+
+TOO_SMALL_REDUCED_CHI2 = 0.1
+"""A fit whose inliers' reduced χ² is below this (and improbably so for its dof) has σ stated too
+large: not trustworthy (:attr:`ScanFit.sigma_too_large` gives the reasons for 0.1)."""
 
 
 @dataclass(frozen=True)
@@ -282,10 +287,27 @@ class ScanFit:
         return [m for m in self.misfits if m.flagged]
 
     @property
+    def sigma_too_large(self) -> bool:
+        """The inliers scatter far less than the stated σ: σ stated too large (a number meant in mm
+        read as metres), which hides any misfit — a depth scale 10 % off fitted a room to 2 m σ with
+        reduced χ² 2e-05.  Two tests, both needed:
+
+        * reduced χ² < :data:`TOO_SMALL_REDUCED_CHI2` (0.1: the scatter is below ⅓ of σ).  Not the
+          χ² lower tail alone: with thousands of points its 0.001 point is 0.97, while a correct
+          σ legitimately gives well below 1 — a sensor's σ is its specification (an honest camera
+          is quieter by up to 2–3×), the inliers are cut at ``outlier_sigma`` σ, and 1 mm depth
+          counts are quantised; none of that reaches a factor 3 in σ;
+        * P(χ²_dof ≤ χ²) < the verdict's threshold (0.001): with few degrees of freedom a small
+          χ² happens by chance (χ²₁ is below 0.1 a quarter of the time).
+        """
+        r = self.reduced_chi2
+        return bool(r < TOO_SMALL_REDUCED_CHI2 and 1.0 - chi2_sf(self.chi2, self.dof) < DEFAULT_THRESHOLD)
+
+    @property
     def ok(self) -> bool:
-        """Converged, observable, inliers consistent with σ (reduced χ² < 2), no structural misfit,
-        fewer than half the points outliers, and not a jump only the prior had held: no
-        :attr:`doubts`."""
+        """Converged, observable, inliers consistent with σ (0.1 < reduced χ² < 2, see
+        :attr:`sigma_too_large`), no structural misfit, fewer than half the points outliers, and
+        not a jump only the prior had held: no :attr:`doubts`."""
         return not self.doubts
 
     @property
@@ -295,6 +317,11 @@ class ScanFit:
         out += [f"unobservable: {u}" for u in self.unobservable]
         if not self.reduced_chi2 < 2.0:  # (NaN too)
             out.append(f"the inliers scatter more than σ (reduced χ² {self.reduced_chi2:.3g})")
+        elif self.sigma_too_large:
+            out.append(
+                f"the inliers scatter far less than σ (reduced χ² {self.reduced_chi2:.3g} < "
+                f"{TOO_SMALL_REDUCED_CHI2:g}): σ stated too large, which hides a misfit"
+            )
         out += [f"structural misfit of {m.object}" for m in self.structural]
         if not self.near_outlier_fraction < 0.5:
             out.append(f"{100 * self.near_outlier_fraction:.0f} % of the points are outliers")
@@ -358,6 +385,11 @@ class ScanFit:
             verdict += " (the solver did not converge)"
         elif self.reduced_chi2 >= 2.0:
             verdict += " (the inliers scatter more than σ: a wrong σ, or a model that does not fit)"
+        elif self.sigma_too_large:
+            verdict += (
+                " (the inliers scatter far less than σ: σ stated too large — a number of millimetres "
+                "given as metres? — which would hide a model that does not fit)"
+            )
         elif self.jumped:
             verdict += " (the estimate contradicts the previous state, and the scan alone does not determine it)"
         lines.append(f"verdict: {verdict}")
@@ -399,6 +431,7 @@ class ScanFit:
                 "determined_by_scans": self.determined_by_scans,
                 "converged": self.converged,
                 "ok": self.ok,
+                "doubts": self.doubts,
                 "elapsed": self.elapsed,
             }
         )
