@@ -200,3 +200,30 @@ def test_sigma_in_metres_meant_as_mm_does_not_hide_a_depth_scale_error(tmp_path,
     assert "σ 2e+03 mm" in out and "verdict: NOT trustworthy (the inliers scatter far less than σ" in out
     assert main(["fit", ROOM, str(tmp_path / "d.png"), "--estimate", "room.*", "--sigma", "2mm"]) == 1
     assert "σ 2 mm" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("suffix", [".csv", ".npy", ".ply", ".pcd"])
+def test_nonfinite_cloud_points_are_counted_and_reported(tmp_path, suffix):
+    """NaN/inf points of a CSV, NPY or PLY cloud were dropped in silence (only PCD's were
+    documented): the scan counts them (and notes it), the fit report's text and JSON state it."""
+    from mbcal.range.readers import write_pcd, write_ply
+
+    pts = np.random.default_rng(0).normal(size=(40, 3))
+    pts[3] = np.nan
+    pts[7, 1] = np.inf
+    path = tmp_path / f"cloud{suffix}"
+    if suffix == ".csv":
+        write_xyz(path, pts, delimiter=",")
+    elif suffix == ".npy":
+        np.save(path, pts)
+    elif suffix == ".ply":
+        write_ply(path, pts)
+    else:
+        write_pcd(path, pts, binary=False)
+    scan = load_scan(path, mbcal.load_model(ROOM))
+    assert len(scan) == 38 and scan.nonfinite == 2 and scan.dropped == 2
+    assert any("2 point(s) with a coordinate that is not a finite number" in n for n in scan.notes)
+    fit = _scan_fit(100.0, 100)
+    fit.nonfinite = 2
+    assert "2 point(s) of the scans left out as read: a coordinate is not a finite number" in fit.text()
+    assert fit.to_json()["nonfinite"] == 2 and _scan_fit(100.0, 100).to_json()["nonfinite"] == 0

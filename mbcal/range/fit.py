@@ -226,6 +226,9 @@ class ScanFit:
     """With a previous posterior as prior (a manager's update): Σ of its squared rows Lᵀ(x − m) at
     the estimate, χ² with ``prior_dof`` degrees of freedom when the update agrees with the prior."""
     prior_dof: int = 0
+    nonfinite: int = 0
+    """Points of the scans left out as read because a coordinate is not a finite number (NaN, inf:
+    an organised cloud's missing returns, a broken export); not in ``total_points``."""
     determined_by_scans: bool = True
     """Whether the scans (and the model's σ priors) determine every unknown without the previous
     posterior: an estimate that contradicts that posterior is trusted only then (a room that was
@@ -344,6 +347,11 @@ class ScanFit:
             f"scan fit: {len(self.points)} points used of {self.total_points} "
             f"({self.cropped} cropped as far from the model), σ {1000 * sig:.3g} mm",
         ]
+        if self.nonfinite:
+            lines.append(
+                f"{self.nonfinite} point(s) of the scans left out as read: "
+                "a coordinate is not a finite number (NaN, inf)"
+            )
         if self.coarse is not None:
             t = self.coarse[:3, 3]
             ang = np.degrees(np.arccos(np.clip((np.trace(self.coarse[:3, :3]) - 1) / 2, -1, 1)))
@@ -413,6 +421,7 @@ class ScanFit:
                 "points": len(self.points),
                 "total_points": self.total_points,
                 "cropped": self.cropped,
+                "nonfinite": self.nonfinite,
                 "outliers": {
                     "count": self.n_outliers,
                     "fraction": self.outlier_fraction,
@@ -1010,6 +1019,7 @@ def fit_scans(
         cropped=cropped,
         far=_world(eng, xb, known, far_pts, far_pair) if len(far_pts) else np.zeros((0, 3)),
         total_points=total,
+        nonfinite=sum(s.nonfinite for s in scans),
         misfits=misfits,
         coarse=coarse,
         elapsed=time.perf_counter() - t0,

@@ -12,7 +12,8 @@ Formats
 * PCD (Point Cloud Library): ``DATA ascii`` and ``DATA binary``, any field order, fields x, y, z
   required; ``binary_compressed`` is refused with a clear message (convert it with
   ``pcl_convert_pcd_ascii_binary``).  NaN points (organised clouds mark missing returns so) are
-  dropped.
+  dropped — as every cloud reader drops a point with a coordinate that is not finite (NaN, inf),
+  counted in :attr:`PointCloud.dropped`; the scan and the fit report state the count.
 * XYZ / CSV / TXT: one point per line, three or more numbers separated by white space or
   commas; a first line of column names (``x,y,z``) is allowed; ``#`` starts a comment.
 * ``.npy``: an (N, 3) (or (N, ≥3), first three columns) array of points in metres.
@@ -53,7 +54,8 @@ MAX_POINTS = 200_000_000  # 4.8 GB of float64 points: refuse claims beyond this 
 
 @dataclass(frozen=True)
 class PointCloud:
-    """Points read from a file: (N, 3) float64 in metres, and how many were dropped (NaN)."""
+    """Points read from a file: (N, 3) float64 in metres, and how many were dropped (a coordinate
+    NaN or infinite; every format)."""
 
     points: np.ndarray
     path: str

@@ -57,6 +57,9 @@ class Scan:
     sigma_rel: float = 0.0
     pixels: np.ndarray | None = None  # (N, 2) row, column of each point of a depth image
     focal: float = 0.0  # the depth camera's focal length (pixels), for down-sampling on its grid
+    nonfinite: int = 0
+    """Of ``dropped``: points left out because a coordinate is not a finite number (NaN, inf), by
+    the reader (a cloud's NaN points) or here; the fit report states them."""
 
     def __post_init__(self) -> None:
         if not at_least(self.sigma, 0.0, strict=True):
@@ -79,6 +82,7 @@ class Scan:
             if self.pixels is not None and len(self.pixels) == len(finite):
                 object.__setattr__(self, "pixels", np.asarray(self.pixels)[finite])
             object.__setattr__(self, "dropped", self.dropped + lost)
+            object.__setattr__(self, "nonfinite", self.nonfinite + lost)
             note = f"{lost} point(s) with a coordinate that is not a finite number left out"
             object.__setattr__(self, "notes", (*self.notes, note))
 
@@ -229,4 +233,8 @@ def load_scan(
     name = "world"
     if frame is not None and frame != "world":
         name = model.frames[model.frame_index(frame)].name
-    return Scan(cloud.points, name, config, sigma if sigma is not None else 2e-3, str(p), cloud.dropped)
+    notes = (
+        (f"{cloud.dropped} point(s) with a coordinate that is not a finite number left out",) if cloud.dropped else ()
+    )
+    s = sigma if sigma is not None else 2e-3
+    return Scan(cloud.points, name, config, s, str(p), cloud.dropped, notes, nonfinite=cloud.dropped)
