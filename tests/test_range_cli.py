@@ -227,3 +227,26 @@ def test_nonfinite_cloud_points_are_counted_and_reported(tmp_path, suffix):
     fit.nonfinite = 2
     assert "2 point(s) of the scans left out as read: a coordinate is not a finite number" in fit.text()
     assert fit.to_json()["nonfinite"] == 2 and _scan_fit(100.0, 100).to_json()["nonfinite"] == 0
+
+
+def test_out_folder_holding_an_input_is_refused_only_when_an_output_would_replace_it(tmp_path, capsys):
+    """`--out DIR` was refused when DIR merely held an input (a scan beside the results), though
+    no output name collided: now only an output that would replace an input is refused."""
+    import shutil
+
+    from mbcal.range.manager import ModelManager, _check_out_dir, _fit_outputs
+    from mbcal.range.readers import write_ply
+
+    out = tmp_path / "out"
+    out.mkdir()
+    beside = out / "c.csv"
+    _check_out_dir(out, [ROOM, beside], _fit_outputs("room_depth"), make=False)  # no collision: fine
+    clash = out / "room_depth.outliers.ply"
+    write_ply(clash, np.random.default_rng(0).normal(size=(30, 3)))
+    assert main(["fit", ROOM, str(clash), "--estimate", "room.*", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "would replace the input" in err and "room_depth.outliers.ply" in err
+    # the manager: its model kept in its own --out folder (no name of the journal, state or model)
+    shutil.copytree(MODELS, out, dirs_exist_ok=True)  # the room's includes come along
+    ModelManager(out / "room_depth.mdl", out, ["room.*"])
+    assert (out / "room_depth.mdl").read_bytes() == (MODELS / "room_depth.mdl").read_bytes()

@@ -97,33 +97,44 @@ def _outputs(fit: ScanFit, model: Model, out: Path, stem: str, note: Sequence[st
     """The calibrated model, the outliers PLY and the report JSON, each written atomically."""
     make_output_folder(out)  # removed again, when empty, if the command fails (all_or_nothing)
     written = []
-    mdl = out / f"{stem}.calibrated.mdl"
+    mdl, ply, rep = (out / name for name in _fit_outputs(stem))
     write_calibrated_model(model, fit.values, mdl, std=fit.std, note=list(note))
     written.append(mdl)
-    ply = out / f"{stem}.outliers.ply"
     write_ply(ply, fit.outlier_points, np.tile(np.array([[230, 40, 40]], dtype=np.uint8), (fit.n_outliers, 1)))
     written.append(ply)
-    rep = out / f"{stem}.fit.json"
     atomic_write(rep, json.dumps(fit.to_json(), indent=2, allow_nan=False) + "\n")
     written.append(rep)
     return written
 
 
-def _check_out_dir(out: Path, inputs: Sequence[str | os.PathLike], *, make: bool = True) -> None:
-    """``--out`` must be a folder that holds no input; ``make``: made now (the manager's journal
-    needs it), else only checked (``mbcal fit`` makes it when it writes: a fit that fails leaves
-    no empty folder behind)."""
+def _check_out_dir(
+    out: Path, inputs: Sequence[str | os.PathLike], outputs: Sequence[str], *, make: bool = True
+) -> None:
+    """``--out`` must be a folder where none of the files written (``outputs``: names in it) is
+    an input; other files there, inputs too, stay untouched (a scan beside the results is no
+    reason to refuse: a folder that merely held an input was refused though no name collided).
+    ``make``: made now (the manager's journal needs it), else only checked (``mbcal fit`` makes it
+    when it writes: a fit that fails leaves no empty folder behind)."""
     if out.exists() and not out.is_dir():
         raise OutputError(f"{out} is a file; --out needs a folder")
+    resolved = {Path(i).resolve() for i in inputs}
+    for name in outputs:
+        target = out / name
+        if target.resolve() in resolved:
+            raise OutputError(
+                f"--out {out}: the output {target} would replace the input of that name; choose another "
+                "folder (inputs are never overwritten)"
+            )
     if not make:
         check_output_folder(out, "--out")
         if not out.exists():
             return
     out.mkdir(parents=True, exist_ok=True)
-    resolved = {Path(i).resolve() for i in inputs}
-    for p in out.iterdir():
-        if p.resolve() in resolved:
-            raise OutputError(f"--out {out} holds the input {p}; choose another folder (inputs are never overwritten)")
+
+
+def _fit_outputs(stem: str) -> list[str]:
+    """The names ``mbcal fit`` writes into ``--out`` (:func:`_outputs`)."""
+    return [f"{stem}.calibrated.mdl", f"{stem}.outliers.ply", f"{stem}.fit.json"]
 
 
 def fit_files(
@@ -141,7 +152,8 @@ def fit_files(
     model = load_model(model_path)
     scans = [load_scan(p, model, sensor=sensor, frame=frame, sigma=sigma) for p in scan_paths]
     if out is not None:
-        _check_out_dir(Path(out), [model_path, *scan_paths, *model.files], make=False)
+        outputs = _fit_outputs(Path(model_path).stem)
+        _check_out_dir(Path(out), [model_path, *scan_paths, *model.files], outputs, make=False)
     fit = fit_scans(model, scans, estimate, options)
     written: list[Path] = []
     if out is not None:
@@ -209,7 +221,8 @@ class ModelManager:
             self.model.resolve("frame", frame)
         self.drift_k = drift_k
         self.set_process_noise(process_noise or {})  # checked before the folder is made
-        _check_out_dir(self.out, [self.model_path, *self.model.files])
+        outputs = [self.JOURNAL, self.SNAPSHOT, f"{self.model_path.stem}.calibrated.mdl"]
+        _check_out_dir(self.out, [self.model_path, *self.model.files], outputs)
         self.sensor, self.frame, self.sigma = sensor, frame, sigma
         self.history: list[Update] = []
         self.prior: Prior | None = None
