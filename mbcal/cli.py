@@ -185,9 +185,13 @@ def _check_dimension(given, unit: str, name: str, option: str, expected) -> None
         )
 
 
-def parse_assignments(items: Sequence[str], model=None, option: str = "--set") -> dict[str, float]:
+def parse_assignments(
+    items: Sequence[str], model=None, option: str = "--set", among: Sequence[str] | None = None
+) -> dict[str, float]:
     """``NAME=VALUE[unit]`` strings → {name: SI value}; units as in models (``5cm``, ``30deg``).
-    With the model, a unit whose dimension is not the parameter's is an error (``lever.length=3deg``)."""
+    With the model, a unit whose dimension is not the parameter's is an error (``lever.length=3deg``).
+    ``among``: the names a pattern may stand for (watch's --process-noise: the estimated unknowns);
+    the unit is checked against those only, and a pattern that matches none is an error."""
     out: dict[str, float] = {}
     for item in items:
         if "=" not in item:
@@ -199,8 +203,18 @@ def parse_assignments(items: Sequence[str], model=None, option: str = "--set") -
         value, dim, unit = parsed
         if not math.isfinite(value):
             raise MbcalError(f"{option} {name}: value must be finite")
+        matched = model.match_params(name.split("@", 1)[0]) if model is not None else []
+        if among is not None:
+            # 'lever.*=1deg' means the estimated lever.angle, not the fixed lever.length (whose
+            # unit is not an angle): patterns stand for the names given only
+            matched = [param for param in matched if param in among]
+            if not matched:
+                raise MbcalError(
+                    f"{option} {name}: matches no estimated unknown",
+                    hint=f"the estimated unknowns: {', '.join(among) or 'none'}",
+                )
         if model is not None and dim is not None:
-            for param in model.match_params(name.split("@", 1)[0]):
+            for param in matched:
                 # declared without a unit: what its places require (a focal length in pixels took
                 # '600mm' as 0.6; a box's size takes '30cm'), else a plain number
                 _check_dimension(dim, unit, param, option, model.param(param).given_dim or DIMENSIONLESS)
@@ -1465,7 +1479,8 @@ def _register_commands(sub) -> None:
         "--process-noise",
         action="append",
         metavar="GLOB=SIGMA",
-        help="expected change per update, with a unit (0.5deg) or SI; repeatable",
+        help="expected change per update of the estimated unknowns GLOB matches, with a unit (0.5deg) or SI; "
+        "repeatable",
     )
     p.add_argument("--poll", type=_positive, default=1.0, metavar="S", help="seconds between looks (default 1)")
     p.add_argument(
@@ -1569,7 +1584,11 @@ def cmd_watch(args: argparse.Namespace) -> int:
 
     # σ per update, with a unit of the unknowns' dimension (lever.angle=0.5deg) or in SI units; read
     # with the model before the manager makes its folder, so a bad option leaves nothing behind
-    noise = parse_assignments(args.process_noise or [], _load(args.model), "--process-noise")
+    model = _load(args.model)
+    estimated: list[str] = []
+    for pattern in args.estimate:  # a pattern that matches nothing is the manager's error (with suggestions)
+        estimated += [n for n in model.match_params(pattern) if n not in estimated]
+    noise = parse_assignments(args.process_noise or [], model, "--process-noise", among=estimated)
     manager = ModelManager(
         args.model,
         args.out,

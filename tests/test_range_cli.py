@@ -250,3 +250,19 @@ def test_out_folder_holding_an_input_is_refused_only_when_an_output_would_replac
     shutil.copytree(MODELS, out, dirs_exist_ok=True)  # the room's includes come along
     ModelManager(out / "room_depth.mdl", out, ["room.*"])
     assert (out / "room_depth.mdl").read_bytes() == (MODELS / "room_depth.mdl").read_bytes()
+
+
+def test_process_noise_patterns_stand_for_the_estimated_unknowns_only(tmp_path, capsys):
+    """`watch --process-noise 'lever.*=1deg'` checked the unit against lever.length too (not
+    estimated, a length) and refused: a pattern stands for the estimated unknowns only."""
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    base = ["watch", ROOM, "--scans", str(scans), "--estimate", "room.*", "--estimate", "lever.angle", "--once"]
+    assert main([*base, "--out", str(tmp_path / "a"), "--process-noise", "lever.*=1deg"]) == 0, capsys.readouterr()
+    capsys.readouterr()
+    assert main([*base, "--out", str(tmp_path / "b"), "--process-noise", "cam*=1mm"]) == 2
+    err = capsys.readouterr().err
+    assert "--process-noise cam*: matches no estimated unknown" in err and "lever.angle" in err
+    assert not (tmp_path / "b").exists()  # a bad option leaves nothing behind
+    assert main([*base, "--out", str(tmp_path / "c"), "--process-noise", "room.*=1deg"]) == 2  # room.x: a length
+    assert "'deg' is not a unit of room.x" in capsys.readouterr().err
