@@ -1461,8 +1461,10 @@ def _register_commands(sub) -> None:
         model OUT/MODEL.calibrated.mdl (atomic; never the input).  Flags a drift (an unknown moved
         more than --drift-k σ) and names structural misfits.  Safe to kill at any moment; a
         restart resumes from the history and skips the files already taken.  A file is taken once
-        it was last modified 0.5 s ago (a copy in progress is waited for, with --once too).  With
-        --once the exit status is 1 when an update of that run was rejected.
+        it was last modified 0.5 s ago (a copy in progress is waited for, with --once too).  A file
+        that cannot be a scan by its kind (an 8-bit photo .png, a README .txt or log .csv without
+        a line of three numbers) is skipped with a note, not an update; a broken scan file is a
+        rejected update.  With --once the exit status is 1 when an update of that run was rejected.
         """,
         """
         mbcal watch models/room_depth.mdl --scans incoming/ --out managed/ --estimate 'room.*' \\
@@ -1625,7 +1627,12 @@ def cmd_watch(args: argparse.Namespace) -> int:
             file=sys.stderr if args.json else sys.stdout,
         )
     end_start_up()  # it may wait long for the first scan: collections resume now (mbcal._collector)
-    manager.watch(args.scans, poll=args.poll, once=args.once, report=report)
+
+    def note(line: str) -> None:  # a file beside the scans that is none (a README, a photo): no update
+        if not args.quiet:
+            print(line, file=sys.stderr if args.json else sys.stdout, flush=True)
+
+    manager.watch(args.scans, poll=args.poll, once=args.once, report=report, note=note)
     # --once in a script: an update of this run that was rejected is not a success
     return EXIT_UNTRUSTED if rejected else EXIT_OK
 

@@ -266,3 +266,32 @@ def test_process_noise_patterns_stand_for_the_estimated_unknowns_only(tmp_path, 
     assert not (tmp_path / "b").exists()  # a bad option leaves nothing behind
     assert main([*base, "--out", str(tmp_path / "c"), "--process-noise", "room.*=1deg"]) == 2  # room.x: a length
     assert "'deg' is not a unit of room.x" in capsys.readouterr().err
+
+
+def test_watch_skips_files_that_cannot_be_scans_with_a_note(tmp_path, capsys):
+    """A README.txt, a log.csv of words and an 8-bit RGB photo.png beside the scans were rejected
+    updates, and --once exited 1: they are skipped with a note (no update); a broken file of a
+    scan's kind (a PNG cut short, a cloud with a bad line) stays a rejected update."""
+    from PIL import Image
+
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    (scans / "README.txt").write_text("This folder holds the scans.\nCopy them here.\n")
+    (scans / "log.csv").write_text("time,event\nmonday,started\n")
+    Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(scans / "photo.png")
+    base = ["watch", ROOM, "--scans", str(scans), "--estimate", "room.*", "--once"]
+    assert main([*base, "--out", str(tmp_path / "a")]) == 0
+    out = capsys.readouterr().out
+    for name in ("README.txt", "log.csv", "photo.png"):
+        assert f"{name}: skipped, not a scan" in out
+    assert "update" not in out and not (tmp_path / "a" / "history.jsonl").exists()
+    assert "8-bit image (mode RGB)" in out
+    (scans / "broken.png").write_bytes(b"partial")
+    assert main([*base, "--out", str(tmp_path / "b")]) == 1
+    out = capsys.readouterr().out
+    assert "update 1 (REJECTED, the scan cannot be read)" in out and "broken.png" in out and "update 2" not in out
+    (tmp_path / "cloud.csv").write_text("x,y,z\n0,0,1\n")
+    (tmp_path / "bad.txt").write_text("0 0 1\n0 zero 1\n")
+    from mbcal.range.readers import not_a_scan
+
+    assert not_a_scan(tmp_path / "cloud.csv") is None and not_a_scan(tmp_path / "bad.txt") is None

@@ -40,7 +40,7 @@ from mbcal.language.load import load_model
 from mbcal.language.model import Model
 from mbcal.outputs import atomic_write, check_output_folder, finite_or_null, make_output_folder
 from mbcal.range.fit import FitOptions, Prior, ScanFit, fit_scans
-from mbcal.range.readers import CLOUD_SUFFIXES, DEPTH_SUFFIXES, write_ply
+from mbcal.range.readers import CLOUD_SUFFIXES, DEPTH_SUFFIXES, not_a_scan, write_ply
 from mbcal.range.scans import Scan, load_scan
 from mbcal.units import at_least
 
@@ -226,6 +226,7 @@ class ModelManager:
         self.sensor, self.frame, self.sigma = sensor, frame, sigma
         self.history: list[Update] = []
         self.prior: Prior | None = None
+        self._skipped: dict[str, list[int]] = {}  # files that are no scans (not_a_scan), with their stamp
         self._resume()
 
     def set_process_noise(self, process_noise: Mapping[str, float]) -> None:
@@ -407,6 +408,7 @@ class ModelManager:
         settle: float = 0.5,
         report: Callable[[Update], None] | None = None,
         max_updates: int | None = None,
+        note: Callable[[str], None] | None = None,
     ) -> int:
         """Process scan files appearing in ``folder`` (oldest name first), one update per file.
 
@@ -414,6 +416,10 @@ class ModelManager:
         written); otherwise poll every ``poll`` s until interrupted.  A file is taken when it was
         last modified ``settle`` s ago or more, or once its size has not changed for ``settle`` s
         (a clock that disagrees with the file system's).  Returns the number of updates made.
+
+        A file of a scan's suffix that cannot be a scan by its kind (:func:`not_a_scan`: an 8-bit
+        photo, a README or log as text) is skipped: no update, ``note`` gets one line for it (again
+        only when it changes); a broken file of a scan's kind is a rejected update.
         """
         src = Path(folder)
         if not src.is_dir():
@@ -451,6 +457,14 @@ class ModelManager:
                         if seen is None or seen[0] != size:
                             sizes[p] = (size, now)
                         writing = True
+                        continue
+                    if self._skipped.get(str(p.resolve())) == stamp:
+                        continue
+                    why = not_a_scan(p)
+                    if why is not None:  # an unrelated file beside the scans: no update, one note
+                        self._skipped[str(p.resolve())] = stamp
+                        if note is not None:
+                            note(f"{p}: skipped, not a scan: {why}")
                         continue
                     try:
                         u = self.update_files([p], stamp)

@@ -41,6 +41,7 @@ __all__ = [
     "read_cloud",
     "read_depth",
     "read_npy",
+    "not_a_scan",
     "write_ply",
     "write_pcd",
     "write_xyz",
@@ -346,6 +347,49 @@ def _read_text(p: Path) -> PointCloud:
     if not rows:
         raise _fail(p, "the file holds no points")
     return _finite_points(np.asarray(rows), p)
+
+
+def not_a_scan(path: str | os.PathLike) -> str | None:
+    """Why a file of a scan's suffix cannot be a scan by its *kind*, or None: an 8-bit (colour or
+    grey) image, which is a photo and never a depth image (those are 16-bit or 32-bit float), or a
+    text file of which no line of its first 64 KB starts with three numbers (a README, a log).  A
+    file of a scan's kind that is broken (a truncated PNG, a cloud with a bad line) is not named
+    here: reading it gives the located error.  For a watched folder, where unrelated files lie."""
+    p = Path(path)
+    suffix = p.suffix.lower()
+    if suffix in (".png", ".tif", ".tiff"):
+        try:
+            from PIL import Image  # optional at import time
+
+            with Image.open(p) as im:  # the header only
+                mode = im.mode
+        except Exception:
+            return None  # not readable as an image: a broken depth image, the reader says why
+        if mode in ("1", "L", "LA", "P", "PA", "RGB", "RGBA", "RGBX", "CMYK", "YCbCr", "LAB", "HSV"):
+            return f"an 8-bit image (mode {mode}), not a depth image (16-bit counts or 32-bit float metres)"
+        return None
+    if suffix in (".xyz", ".csv", ".txt", ".pts"):
+        try:
+            with open(p, "rb") as f:
+                head = f.read(65536)
+            text = head.decode("utf-8")
+        except (OSError, UnicodeDecodeError):
+            return None  # the reader gives the located error
+        lines = text.splitlines()
+        if len(head) == 65536 and lines:
+            lines = lines[:-1]  # the last line may be cut short
+        for line in lines:
+            words = [w for w in _SPLIT.split(line.split("#", 1)[0].strip()) if w]
+            try:
+                [float(w) for w in words[:3]]
+            except ValueError:
+                continue
+            if len(words) >= 3:
+                return None
+        if not text.strip():
+            return None  # empty: a file still being made, or an empty scan (the reader says so)
+        return "text with no line of three numbers (x y z) in it: not a point cloud"
+    return None
 
 
 # ---- .npy ------------------------------------------------------------------------------------------------
