@@ -106,7 +106,10 @@ def detect_squares(image: np.ndarray, rows: int, cols: int, size_ratio: float) -
     n = rows * cols
     if len(quads) < n:
         return None
-    areas = np.array([abs(np.cross(q[1] - q[0], q[3] - q[0])) for q in quads])
+    # |a × b| of the two edges from the first corner, written out (NumPy 2 deprecates cross of 2-vectors)
+    a = np.array([q[1] - q[0] for q in quads], dtype=float)
+    b = np.array([q[3] - q[0] for q in quads], dtype=float)
+    areas = np.abs(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])
     # The n quadrilaterals of most similar size: the grid's squares.
     order = np.argsort(areas)
     best, best_spread = None, np.inf
