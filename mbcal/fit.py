@@ -27,8 +27,9 @@ is exact linear algebra:
 - *σ set too small*: what remains is uniformly too large; the factor is √(S/dof) of the rest.
 
 **Systematic residuals** (:func:`systematic_residuals`), tested whatever the χ² test says: a
-camera whose neighbouring image points are off alike — a model error that stays within a σ
-stated larger than the real noise, which the χ² test cannot see — makes the result untrustworthy.
+camera whose neighbouring image points are off alike (or 3-D points, alike in space) — a model
+error that stays within a σ stated larger than the real noise, which the χ² test cannot see —
+makes the result untrustworthy.
 
 With a robust loss the outliers it down-weights are expected: the test then applies to the
 measurements left after setting the outliers aside.
@@ -354,9 +355,10 @@ class FitVerdict:
     """Unknowns held at a hard limit the data push past (σ 0: the limit, not a measurement of it):
     not trustworthy, ``--accept-poor-fit`` accepts it."""
     systematic: tuple[Suspect, ...] = ()
-    """Cameras whose image points' residuals are smooth across the image (neighbouring points off
-    alike): a model error the χ² test misses when σ is stated larger than the residuals
-    (:func:`systematic_residuals`); not trustworthy, ``--accept-poor-fit`` accepts it."""
+    """Cameras whose image points' residuals are smooth across the image, or sets of 3-D points
+    whose residuals are smooth in space (neighbouring points off alike): a model error the χ² test
+    misses when σ is stated larger than the residuals (:func:`systematic_residuals`); not
+    trustworthy, ``--accept-poor-fit`` accepts it."""
 
     @property
     def tested(self) -> bool:
@@ -675,7 +677,9 @@ def _neighbour_sums(uv: np.ndarray, res: np.ndarray) -> np.ndarray:
     :data:`SYSTEMATIC_NEIGHBOURS` nearest points, each pair once, summed per view — (views, 4):
     Σ rᵢ·rⱼ, Σ (rᵢ·rⱼ)², Σ ½(|rᵢ|² + |rⱼ|²) and the number of pairs."""
     n = uv.shape[1]
-    d = (uv[:, :, None, 0] - uv[:, None, :, 0]) ** 2 + (uv[:, :, None, 1] - uv[:, None, :, 1]) ** 2
+    d = np.zeros((uv.shape[0], n, n))
+    for axis in range(uv.shape[2]):  # image points (u, v) or 3-D points (x, y, z)
+        d += (uv[:, :, None, axis] - uv[:, None, :, axis]) ** 2
     d[:, np.arange(n), np.arange(n)] = np.inf
     kth = np.partition(d, SYSTEMATIC_NEIGHBOURS - 1, axis=2)[:, :, SYSTEMATIC_NEIGHBOURS - 1 : SYSTEMATIC_NEIGHBOURS]
     near = d <= kth  # each point's nearest (ties at the k-th distance all count)
@@ -700,9 +704,7 @@ def _neighbour_sums_large(uv: np.ndarray, res: np.ndarray) -> np.ndarray:
     n, k = len(uv), SYSTEMATIC_NEIGHBOURS
     near = np.empty((n, k), dtype=np.int64)
     for start in range(0, n, 256):
-        d = (uv[start : start + 256, None, 0] - uv[None, :, 0]) ** 2 + (
-            uv[start : start + 256, None, 1] - uv[None, :, 1]
-        ) ** 2
+        d = np.sum((uv[start : start + 256, None, :] - uv[None, :, :]) ** 2, axis=2)
         d[np.arange(len(d)), start + np.arange(len(d))] = np.inf
         near[start : start + 256] = np.argpartition(d, k - 1, axis=1)[:, :k]
     first = np.repeat(np.arange(n), k)
@@ -716,14 +718,16 @@ def _neighbour_sums_large(uv: np.ndarray, res: np.ndarray) -> np.ndarray:
 def systematic_residuals(
     problem: Problem, r: np.ndarray, threshold: float = DEFAULT_THRESHOLD, exclude: Sequence[int] = ()
 ) -> list[Suspect]:
-    """Cameras whose image points are off alike where they lie close together in the image.
+    """Cameras whose image points are off alike where they lie close together in the image (and
+    3-D points, by the frame they are given in, off alike where they lie close together in space).
 
     The χ² test judges the size of the residuals against the stated σ; stated larger than the
     real noise (a detector's default), it passes a model that misses something — a lens's
     distortion left out, a target's geometry wrong — whose residuals, though within σ, are a
     smooth field across the image.  Independent noise leaves neighbouring points' residuals
     uncorrelated; such a field makes them alike.  For the image points (kinds with two values in
-    pixels) of each camera and configuration, each point is paired with its
+    pixels) of each camera and configuration — and the 3-D points (kinds with three lengths, as
+    ``point3d``) of each frame and configuration, paired by measured position in space — each point is paired with its
     :data:`SYSTEMATIC_NEIGHBOURS` nearest (by measured position); over a camera's pairs,
     T = Σ rᵢ·rⱼ / √Σ (rᵢ·rⱼ)² (the whitened residual vectors) is standard normal for independent
     residuals (the pair products are uncorrelated, whatever σ), and a least-squares fit's own
@@ -741,11 +745,18 @@ def systematic_residuals(
     totals: dict[str, np.ndarray] = {}  # camera → Σ products, Σ squared products, Σ mean squares, pairs
     members: dict[str, list[np.ndarray]] = {}
     for g in problem.groups:
-        if g.model.value_dimension != "pixel" or g.model.size != 2:
+        # positions with neighbours: image points (two values in pixels, by camera) and 3-D points
+        # (three lengths, by the frame they are given in)
+        if (g.model.value_dimension, g.model.size) == ("pixel", 2):
+            role, label = "camera", "camera {}"
+        elif (g.model.value_dimension, g.model.size) == ("length", 3):
+            role, label = "frame", "3-D points in frame {}"
+        else:
             continue
         col = columns[g.model.kind]
-        res_all = np.asarray(r[g.start : g.start + g.rows], dtype=float).reshape(-1, 2)
-        cameras, camera_code = col.refs.get("camera", ([g.model.kind], np.zeros(len(col.members), dtype=np.int64)))
+        res_all = np.asarray(r[g.start : g.start + g.rows], dtype=float).reshape(-1, g.model.size)
+        cameras, camera_code = col.refs.get(role, ([g.model.kind], np.zeros(len(col.members), dtype=np.int64)))
+        cameras = [label.format(name) for name in cameras]
         view = camera_code * (int(col.config.max(initial=0)) + 1) + col.config  # a camera in a configuration
         usable = col.has_value & np.all(np.isfinite(col.values), axis=1) & np.all(np.isfinite(res_all), axis=1)
         if len(exclude):
@@ -779,19 +790,26 @@ def systematic_residuals(
         if p >= threshold or correlation < SYSTEMATIC_MIN_CORRELATION or shared < SYSTEMATIC_MIN_SIZE:
             continue
         ids = np.sort(np.concatenate(members[camera])).tolist()
+        if camera.startswith("camera "):
+            what = (
+                "image points",
+                "image",
+                "lens distortion not estimated, a wrong target geometry, a wrong camera model",
+            )
+        else:
+            what = "points", "space", "a dimension or a pose held at a wrong value, a wrong shape"
         found.append(
             Suspect(
                 "systematic",
-                f"camera {camera}",
+                camera,
                 tuple(ms[i].id for i in ids),
                 shared**2 * 2 * len(ids),
                 p,
                 correlation,
-                f"camera {camera}: neighbouring image points are off alike (their residuals correlate "
+                f"{camera}: neighbouring {what[0]} are off alike (their residuals correlate "
                 f"{correlation:.2f}, T = {z:.3g}, p = {p:.3g}; a smooth error of about {shared:.2g} σ across the "
-                "image) — the model misses something the residuals show as a field (lens distortion not "
-                "estimated, a wrong target geometry, a wrong camera model); the χ² test cannot see it when σ is "
-                "stated larger than the residuals",
+                f"{what[1]}) — the model misses something the residuals show as a field ({what[2]}); the χ² test "
+                "cannot see it when σ is stated larger than the residuals",
             )
         )
     return found

@@ -764,3 +764,38 @@ def test_a_measurement_that_alone_determines_unknowns_is_named_untested():
     plan = mbcal.read_measurements(MEASUREMENTS / "room_plan.csv", room)
     clean = mbcal.calibrate(room, mbcal.simulate(room, plan, ROOM_TRUTH, seed=21), ["room.*"], restarts=2)
     assert clean.verdict.untested == () and clean.verdict.verdict() == "consistent and well determined"
+
+
+def _grid_of_3d_points() -> tuple:
+    """40 points on an object of scale obj.s (held at 1), measured in 3-D with σ 5 mm."""
+    points = "\n".join(
+        f"  point p{i}_{j} = (obj.s * {0.1 * i:.1f} m, obj.s * {0.1 * j:.1f} m, {0.02 * ((i * j) % 3):.2f} m)"
+        for i in range(8)
+        for j in range(5)
+    )
+    model = mbcal.load_model_text(
+        "measure point3d\nparam obj.x = 0 m in [-0.5 m, 0.5 m]\nparam obj.y = 0 m in [-0.5 m, 0.5 m]\n"
+        "param obj.z = 0 m in [-0.5 m, 0.5 m]\nparam obj.yaw = 0 deg in [-20 deg, 20 deg]\nparam obj.s = 1\n"
+        f"frame obj at translate(obj.x, obj.y, obj.z) * rot_z(obj.yaw) {{\n{points}\n}}\n"
+    )
+    records = [{"kind": "point3d", "point": f"obj.p{i}_{j}", "sigma": 0.005} for i in range(8) for j in range(5)]
+    return model, mbcal.measurements_from_records(records, model)
+
+
+def test_3d_points_off_alike_with_sigma_stated_too_large_are_systematic():
+    """3-D points of an object 2 % larger than the model says, σ stated 10× the real scatter: the
+    χ² test passed and the pose came out 'consistent and well determined', several mm off; only
+    image points were tested for a smooth field of residuals."""
+    model, plan = _grid_of_3d_points()
+    unknowns = ["obj.x", "obj.y", "obj.z", "obj.yaw"]
+    for scale, expected in ((1.0, False), (1.02, True)):
+        data = mbcal.simulate(model, plan, {"obj.s": scale, "obj.x": 0.1}, noise=0.1, seed=4)
+        result = mbcal.calibrate(model, data, unknowns, restarts=2, seed=0)
+        assert result.verdict.consistent  # the χ² test cannot see it
+        assert bool(result.verdict.systematic) == expected, result.summary()
+        if expected:
+            (field,) = result.verdict.systematic
+            assert field.subject == "3-D points in frame world" and field.factor > 0.5
+            assert "neighbouring points are off alike" in field.description
+            assert not result.ok and "the residuals are systematic" in result.verdict.verdict()
+            jsonschema.validate(json.loads(json.dumps(result.to_json())), schema())
