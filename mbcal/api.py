@@ -393,6 +393,23 @@ def _check_analysis(analysis: str) -> None:
         raise SolverError(f"analysis must be 'auto', 'dense' or 'structured', got '{analysis}'")
 
 
+# The fit verdict names untested measurements (those that alone determine part of the unknowns) of
+# every measurement when J has at most this many entries (an SVD of it: ~1 ms); beyond, of the
+# measurements of configurations whose rows are at most twice their own unknowns — where one can
+# alone fix a direction — which a camera calibration of full board views has none of (issue 16).
+_LEVERAGE_ENTRIES = 20_000
+
+
+def _leverage_tested(problem: Problem, structure: Structure | None) -> bool | list[int]:
+    """What :func:`mbcal.fit.assess_fit` tests for untested measurements (its ``leverage``)."""
+    if problem.n_residuals * problem.params.size <= _LEVERAGE_ENTRIES or structure is None:
+        return True
+    rows = structure.row_block[: problem.size]
+    counts = np.bincount(rows, minlength=structure.n_blocks)
+    sparse = counts <= 2 * structure.nb
+    return [k for k, s in enumerate(problem.measurement_rows) if s.stop > s.start and sparse[rows[s.start]]]
+
+
 def _analysed_by_blocks(structure: Structure | None, analysis: str) -> bool:
     """Whether the report of a structured solve is computed from the blocks (``CalibrateOptions.analysis``)."""
     _check_analysis(analysis)
@@ -535,7 +552,7 @@ def calibrate(
         ambiguous=distinct_minima(
             solved, obs, _units(problem), local=problem.local, scale=chi2, ranges=(params.lower, params.upper)
         ),
-        leverage=structure is None,  # J is at hand; a structured problem's would be scattered for it
+        leverage=_leverage_tested(problem, structure),
     )
     return _result(problem, solved, x, x_init, obs, rows, verdict, o, config, t0)
 
@@ -692,6 +709,7 @@ def _calibrate_by_blocks(
         observability=o.observability,
         accept=o.accept_poor_fit,
         linearize=lambda kept: StructuredLinear(structure, r, Jc, kept),
+        leverage=_leverage_tested(problem, structure),
         ambiguous=distinct_minima(
             solved, obs, _units(problem), local=problem.local, scale=chi2, ranges=(params.lower, params.upper)
         ),

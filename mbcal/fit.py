@@ -50,7 +50,7 @@ do not prefer the best — at unknowns more than :data:`AMBIGUOUS_SIGMAS` σ fro
 poses, an angle whose sign the measurements cannot tell) make the result untrustworthy: the
 estimate's σ describes one of the solutions and says nothing of the other.
 
-**Untested measurements** (dense problems).  A measurement that alone determines part of the
+**Untested measurements.**  A measurement that alone determines part of the
 unknowns (deleting it loses rank: an eigenvalue of 1 in its block of the hat matrix) has a residual
 of ~0 whatever its error; the report names it, and the verdict says so beside "consistent".
 
@@ -349,8 +349,8 @@ class FitVerdict:
     """Measurements (ids) that alone determine part of the unknowns: deleting one leaves a direction
     undetermined, so its residual is zero whatever its error and no test can see a mistake in it
     (the tip of a lever whose two coordinates fix its angle and length).  Said beside the verdict;
-    like a fit without redundancy, it does not make the result untrustworthy (dense problems:
-    not computed for a problem solved by blocks)."""
+    like a fit without redundancy, it does not make the result untrustworthy (a problem solved by
+    blocks: the measurements of configurations with few rows, at most twice their unknowns)."""
     held: tuple[str, ...] = ()
     """Unknowns held at a hard limit the data push past (σ 0: the limit, not a measurement of it):
     not trustworthy, ``--accept-poor-fit`` accepts it."""
@@ -1010,7 +1010,7 @@ def assess_fit(
     groups: Mapping[str, Sequence[int]] | None = None,
     linearize: Callable[[np.ndarray], Any] | None = None,
     ambiguous: Sequence[Suspect] = (),
-    leverage: bool = False,
+    leverage: bool | Sequence[int] = False,
 ) -> FitVerdict:
     """The verdict on a calibration at its estimate.
 
@@ -1032,9 +1032,10 @@ def assess_fit(
         (:class:`mbcal.structured.StructuredLinear`) works from its blocks, without the m × n J.
     ambiguous : sequence of Suspect
         The other solutions the restarts found as good (:func:`distinct_minima`).
-    leverage : bool
-        Name the measurements that alone determine part of the unknowns (``untested``): needs ``J``
-        (an SVD of it: the caller says whether that is cheap).
+    leverage : bool or sequence of int
+        Name the measurements that alone determine part of the unknowns (``untested``): True for
+        every measurement (an SVD of ``J``, or ``linearize`` of every row: the caller says whether
+        that is cheap), or the indices of the measurements to test.
     """
     config = config or FitConfig()
     alpha = config.threshold
@@ -1058,11 +1059,13 @@ def assess_fit(
         return Jd
 
     untested: tuple[str, ...] = ()
-    if leverage and J is not None and linearize is None and ms:
+    probed = list(range(len(ms))) if leverage is True else [int(i) for i in (leverage or ())]
+    if probed and (J is not None or linearize is not None):
         # d < the block's size: deleting the measurement loses rank, its residual is forced to ~0
         every = np.arange(r.shape[0])
-        _, d = _Linear(r, dense_j(), every).deletions(blocks)
-        untested = tuple(ids[i] for i in range(len(ms)) if len(blocks[i]) and d[i] < len(blocks[i]))
+        whole = linearize(every) if linearize is not None else _Linear(r, dense_j(), every)
+        _, d = whole.deletions([blocks[i] for i in probed])
+        untested = tuple(ids[i] for i, di in zip(probed, d) if len(blocks[i]) and di < len(blocks[i]))
     common = dict(
         threshold=alpha,
         loss=str(loss),
