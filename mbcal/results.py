@@ -353,11 +353,11 @@ def _parameters_json(names, units, x, x0, std) -> dict[str, Any]:
     out = {}
     for i, name in enumerate(names):
         unit = units[name]
-        entry = {
+        entry: dict[str, Any] = {
             "value": float(x[i]),
             "std": _num(std[i]),
             "initial": float(x0[i]) if x0 is not None else None,
-            "unit": "rad" if unit == "deg" else unit,
+            "unit": _si_unit(unit),
             "observable": bool(np.isfinite(std[i])),
         }
         if unit == "deg":
@@ -424,7 +424,7 @@ def _active_bounds_json(r: CalibrationResult) -> list[dict[str, Any]]:
         limit = info.limit_lower if side == "lower" else info.limit_upper
         unit = info.unit
         value = None if limit is None else _num(limit)
-        out.append({"name": name, "bound": side, "limit": value, "unit": "rad" if unit == "deg" else unit})
+        out.append({"name": name, "bound": side, "limit": value, "unit": _si_unit(unit)})
     return out
 
 
@@ -443,12 +443,17 @@ def _active_bounds_text(r: CalibrationResult) -> list[str]:
     ]
 
 
-def _far_outside_ranges_text(r: CalibrationResult) -> list[str]:
-    """A note naming each estimate that lies outside its search range by more than half the range's
-    width.  The search ranges bound the random starts, not the estimates, so this is no error —
-    but an estimate that far out (cx = 608 px for a range of [220, 420], from corners in pixels
-    of another resolution) says that the data or the model are not what the ranges expected."""
-    parts = []
+def _si_unit(unit: str) -> str:
+    return "rad" if unit == "deg" else unit
+
+
+def _far_outside_ranges(r: CalibrationResult) -> list[dict[str, Any]]:
+    """Each estimate that lies outside its search range by more than half the range's width
+    (name, value, lower, upper in SI units, unit).  The search ranges bound the random starts, not
+    the estimates, so this is no error — but an estimate that far out (cx = 608 px for a range of
+    [220, 420], from corners in pixels of another resolution) says that the data or the model are
+    not what the ranges expected."""
+    out = []
     for i, name in enumerate(r.names):
         info = r.problem.params.info(name)
         lower, upper = getattr(info, "lower", None), getattr(info, "upper", None)
@@ -457,10 +462,19 @@ def _far_outside_ranges_text(r: CalibrationResult) -> list[str]:
             continue
         if x < lower - (upper - lower) / 2 or x > upper + (upper - lower) / 2:
             unit = r.unit(name)
-            parts.append(
-                f"{name} = {_value_cell(unit, x)} (search range [{_value_cell(unit, lower)}, "
-                f"{_value_cell(unit, upper)}])"
-            )
+            out.append({"name": name, "value": x, "lower": float(lower), "upper": float(upper), "unit": _si_unit(unit)})
+    return out
+
+
+def _far_outside_ranges_text(r: CalibrationResult) -> list[str]:
+    """The note of :func:`_far_outside_ranges` in the text report."""
+    parts = []
+    for entry in _far_outside_ranges(r):
+        unit = r.unit(entry["name"])
+        parts.append(
+            f"{entry['name']} = {_value_cell(unit, entry['value'])} (search range "
+            f"[{_value_cell(unit, entry['lower'])}, {_value_cell(unit, entry['upper'])}])"
+        )
     if not parts:
         return []
     return [
@@ -520,6 +534,7 @@ def result_json(r: CalibrationResult) -> dict[str, Any]:
         "outliers": {"threshold": r.outlier_threshold, "ids": [row.id for row in r.outliers]},
         "not_visible": list(r.run.not_visible),
         "active_bounds": _active_bounds_json(r),
+        "outside_search_range": _far_outside_ranges(r),
         **({"fit": r.verdict.to_json()} if r.verdict is not None else {}),
         "points": [p.to_json() for p in r.points],
         "solver": {

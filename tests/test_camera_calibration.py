@@ -431,5 +431,8 @@ def test_zhangs_corners_doubled_are_refused_and_an_estimate_far_outside_its_rang
     cc = calibrate_cameras(model, mbcal.measurements_from_records(records, model))
     note = next(line for line in cc.summary().splitlines() if line.startswith("note: far outside the search range"))
     assert "cam.cx = " in note and "(search range [250, 390])" in note
+    far = {entry["name"]: entry for entry in cc.result.to_json()["outside_search_range"]}  # and in the JSON
+    assert far["cam.cx"]["lower"] == 250 and far["cam.cx"]["upper"] == 390 and far["cam.cx"]["value"] > 460
     plain = calibrate_cameras(model, zhang_corners(model))
     assert "far outside the search range" not in plain.summary()
+    assert plain.result.to_json()["outside_search_range"] == []
