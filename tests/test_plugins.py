@@ -357,3 +357,36 @@ def test_the_plugin_guide_s_example_model_and_measurements_solve_with_the_exampl
     assert out.returncode == 0, out.stderr[-3000:]
     refused = solve(model.replace(", height", ""))  # the kind not listed: the file is refused
     assert refused.returncode == 2 and "'height' is not one of them" in refused.stderr, refused.stderr[-3000:]
+
+
+def test_registering_a_kind_mbcal_provides_is_refused_unless_replace_is_given(monkeypatch):
+    """register() of a class whose kind was 'image_point' silently replaced the built-in for every
+    model; a kind registered from Python before may still be registered again (a cell run again)."""
+    import importlib
+
+    registry_module = importlib.import_module("mbcal.measurements.registry")  # the package exports a function
+    builtin = get_model("image_point")
+
+    class Impostor(MeasurementModel):
+        kind = "image_point"
+        roles = ()
+        values = ("value",)
+
+        def predict(self, scenes, batch):
+            raise AssertionError("never called")
+
+    monkeypatch.setattr(registry_module, "_EXTRA", dict(registry_module._EXTRA))  # undone after
+    with pytest.raises(ValueError, match=r"^register\(Impostor\): kind 'image_point' is one of mbcal's built-in"):
+        register(Impostor)
+    assert get_model("image_point") is builtin
+    assert isinstance(register(Impostor, replace=True), Impostor)
+    assert isinstance(get_model("image_point"), Impostor)
+
+    class Mine(MeasurementModel):
+        kind = "test_mine_again"
+        roles = ()
+        values = ("value",)
+
+    first = register(Mine)
+    second = register(type("Mine", (Mine,), {}))  # the same kind again, from a cell run again
+    assert get_model("test_mine_again") is second is not first

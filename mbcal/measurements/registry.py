@@ -86,11 +86,31 @@ def registry(*, reload: bool = False) -> dict[str, MeasurementModel]:
     return {**_REGISTRY, **_EXTRA}
 
 
-def register(model: MeasurementModel | type[MeasurementModel]) -> MeasurementModel:
-    """Register a measurement model from Python (without an entry point), e.g. in a notebook."""
+def register(model: MeasurementModel | type[MeasurementModel], *, replace: bool = False) -> MeasurementModel:
+    """Register a measurement model from Python (without an entry point), e.g. in a notebook.
+
+    A kind registered earlier with :func:`register` is replaced by the new model (a notebook's
+    cell run again, a test's plugin).  A kind that mbcal itself or an installed plugin package
+    provides (``image_point``, ``point3d``, ...) is refused with a :class:`ValueError` unless
+    ``replace=True``: replacing it would silently change what every model measuring that kind
+    computes.  ``replace=True`` replaces it for this process.
+    """
     instance = model() if isinstance(model, type) else model
     if not instance.kind:
         raise ValueError("a measurement model needs a 'kind'")
+    installed = registry()
+    if not replace and instance.kind not in _EXTRA and instance.kind in installed:
+        current = installed[instance.kind]
+        source = (
+            "one of mbcal's built-in measurement models"
+            if type(current).__module__.startswith("mbcal.")
+            else f"provided by {describe(current)}"
+        )
+        raise ValueError(
+            f"register({type(instance).__name__}): kind '{instance.kind}' is {source}; registering "
+            "another model of that kind would replace it for every model that measures it. Give the "
+            f"model another kind, or call register(..., replace=True) to replace '{instance.kind}' on purpose"
+        )
     _EXTRA[instance.kind] = instance
     _take_digest(instance)
     return instance
