@@ -574,7 +574,8 @@ def cmd_solve(args: argparse.Namespace) -> int:
         from mbcal.render.overlays import planned_overlays  # lazy: rendering loads only when a picture is made
 
         _check_overlays(args, planned_overlays(model, data.measurements, args.overlay))
-    progress.step(f"compiling and solving {args.restarts} restarts")
+    # calibrate says "solving: ..." once the unknowns and the values are checked (a bad --estimate,
+    # a plan without values): nothing claims to compile and solve a problem that is then refused.
     result = calibrate(
         model,
         data,
@@ -589,6 +590,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
         outlier_threshold=args.outlier_threshold,
         fit=fit,
         accept_poor_fit=args.accept_poor_fit,
+        progress=progress.step,
     )
     if args.overlay or args.plot:
         progress.step("drawing overlays and plots")

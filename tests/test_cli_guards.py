@@ -500,3 +500,19 @@ def test_check_checks_every_model_it_is_given(tmp_path, capsys):
     assert "bad2.mdl:1:13: a position must be a length (m), got an angle (rad)" in err
     assert "2 of 3 models failed the check" in err
     assert cli.main(["check", LEVER, LEVER]) == 0 and "ok: 2 models checked" in capsys.readouterr().out
+
+
+def test_solve_refuses_bad_unknowns_or_a_plan_before_it_says_it_is_solving(clicks, capsys):
+    """'… compiling and solving 2 restarts' was printed, then 'no parameter matches ...': the
+    unknowns and the measured values are checked before the solve's progress line."""
+    bad = [
+        ([str(clicks), "--estimate", "lever.nothing"], "no parameter matches 'lever.nothing'"),
+        ([LEVER_PLAN, "--estimate", "lever.angle"], "is this a measurement plan?"),
+    ]
+    for argv, message in bad:
+        assert cli.main(["solve", LEVER, *argv, "--restarts", "2"]) == 2
+        err = capsys.readouterr().err
+        assert message in err and "solving" not in err, err
+    assert cli.main(["solve", LEVER, str(clicks), "--estimate", "lever.angle", "--restarts", "2"]) == 0
+    err = capsys.readouterr().err
+    assert "… solving: 1 unknowns," in err and "2 restarts" in err, err
