@@ -20,6 +20,7 @@ import sys
 import textwrap
 import threading
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
@@ -36,7 +37,7 @@ import numpy as np  # noqa: E402
 from mbcal import __version__  # noqa: E402
 from mbcal._collector import end_start_up, pause_start_up  # noqa: E402
 from mbcal.cache import CACHE_PARTS, PROGRAM_PARTS, cache_contents, cache_dir, clear_cache, max_part_bytes  # noqa: E402
-from mbcal.errors import MbcalError, suggest  # noqa: E402
+from mbcal.errors import MbcalError, MbcalWarning, suggest  # noqa: E402
 from mbcal.outputs import (  # noqa: E402
     INTERRUPTED,
     all_or_nothing,
@@ -315,6 +316,11 @@ class Progress:
             self._stop.set()
             self._thread.join()
             self._thread = None
+            print("\r\033[K", end="", file=sys.stderr, flush=True)
+
+    def clear_line(self) -> None:
+        """Clear the ticking line (a warning is printed; the next tick writes it again)."""
+        if self._thread is not None:
             print("\r\033[K", end="", file=sys.stderr, flush=True)
 
     def done(self) -> None:
@@ -1741,6 +1747,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return EXIT_BAD_INPUT
     restore = _watch_interrupts()
+    show_warning = warnings.showwarning
+    warnings.showwarning = _warning_printer(show_warning)
     try:
         # no write of the command replaces one of its inputs (_check_outputs); and a command's
         # outputs appear together or not at all (Ctrl-C while its overlays were drawn left the
@@ -1773,7 +1781,24 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: {err.strerror or err}{where}", file=sys.stderr)
         return EXIT_BAD_INPUT
     finally:
+        warnings.showwarning = show_warning
         restore()
+
+
+def _warning_printer(fallback: Callable[..., None]) -> Callable[..., None]:
+    """A ``warnings.showwarning`` that prints mbcal's own warnings
+    (:class:`~mbcal.errors.MbcalWarning`, which locate themselves in their message) as
+    ``warning: MESSAGE`` on standard error, even with --quiet; others as ``fallback`` does."""
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        if not issubclass(category, MbcalWarning):
+            fallback(message, category, filename, lineno, file, line)
+            return
+        for progress in _ACTIVE_PROGRESS:
+            progress.clear_line()
+        print(f"warning: {message}", file=sys.stderr, flush=True)
+
+    return show
 
 
 def _subparser(parser: argparse.ArgumentParser, command: str | None) -> argparse.ArgumentParser | None:

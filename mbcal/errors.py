@@ -36,6 +36,8 @@ __all__ = [
     "RenderError",
     "KinematicsError",
     "UnreachableError",
+    "MbcalWarning",
+    "MeasurementFileWarning",
     "suggest",
     "shown",
     "undecodable_at",
@@ -231,6 +233,17 @@ class UnreachableError(KinematicsError):
     out of reach, the closest pose found and its distance."""
 
     exit_code = 1
+
+
+class MbcalWarning(UserWarning):
+    """Base of the warnings mbcal gives about a user's input or set-up: something read or done as
+    asked that is probably not what was meant.  The command line prints them as
+    ``warning: MESSAGE`` on standard error."""
+
+
+class MeasurementFileWarning(MbcalWarning):
+    """A measurement file read as written but probably wrong (a row pasted twice); the message
+    starts with ``file:line:``."""
 
 
 def undecodable_at(path: str, err: UnicodeDecodeError, first_line: int = 1) -> SourceSpan:

@@ -516,3 +516,11 @@ def test_solve_refuses_bad_unknowns_or_a_plan_before_it_says_it_is_solving(click
     assert cli.main(["solve", LEVER, str(clicks), "--estimate", "lever.angle", "--restarts", "2"]) == 0
     err = capsys.readouterr().err
     assert "… solving: 1 unknowns," in err and "2 restarts" in err, err
+
+
+def test_solve_shows_the_warning_of_a_row_pasted_twice(tmp_path, clicks, capsys):
+    rows = [line.split(",", 1)[1] for line in clicks.read_text().splitlines()]  # without the ids
+    twice = tmp_path / "twice.csv"
+    twice.write_text("\n".join([*rows, rows[1]]) + "\n")
+    assert cli.main(["solve", LEVER, str(twice), "--estimate", "lever.angle", "--restarts", "2", "-q"]) == 0
+    assert f"warning: {twice}:{len(rows) + 1}: row repeats line 2 (" in capsys.readouterr().err

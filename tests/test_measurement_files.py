@@ -1176,3 +1176,36 @@ def test_image_points_mostly_outside_their_cameras_image_are_refused_at_the_firs
     assert f"measurement 'm{first}'" in str(info.value)
     assert (info.value.span.line, info.value.span.column) == (first + 2, 1)
     assert "another resolution, or scaled" in info.value.hint
+
+
+def test_a_row_pasted_twice_is_read_with_a_located_warning(tmp_path, room):
+    """A file with one row pasted twice (no ids) counted its measurement twice in silence."""
+    import warnings
+
+    from mbcal.errors import MeasurementFileWarning
+
+    row = "image_point,robot.head.eyes.left,room.valve.lever.hub,263.8,276.7,1.0\n"
+    other = "image_point,robot.head.eyes.right,room.valve.lever.hub,214.3,275.6,1.0\n"
+    header = "kind,camera,point,u,v,sigma\n"
+    path = write(tmp_path, "twice.csv", header + row + other + row + other + other)
+    with pytest.warns(MeasurementFileWarning) as caught:
+        data = read_measurements(path, room)
+    assert len(data) == 5  # read as written: not refused
+    assert [str(w.message) for w in caught] == [
+        f"{path}:4: row repeats line 2 (same kind, names, configuration, values and σ: pasted twice?); both are "
+        "used; 2 more rows repeat earlier ones (lines 5, 6)"
+    ]
+    records = [
+        {"kind": "image_point", "camera": "robot.head.eyes.left", "point": "room.valve.lever.hub", "u": 1, "v": 2}
+    ] * 2
+    json_path = write(tmp_path, "twice.json", json.dumps({"measurements": records}, indent=1))
+    with pytest.warns(MeasurementFileWarning, match=rf"^{re.escape(str(json_path))}:10: measurement repeats line 3 "):
+        read_measurements(json_path, room)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        # not repeats: another value or σ, rows with ids of their own, a plan's rows (no values)
+        read_measurements(write(tmp_path, "sigma.csv", header + row + row.replace(",1.0", ",2.0")), room)
+        read_measurements(write(tmp_path, "ids.csv", "id," + header + "a," + row + "b," + row), room)
+        read_measurements(
+            write(tmp_path, "plan.csv", "kind,camera,point\n" + 2 * "image_point,eyes.left,lever.hub\n"), room
+        )

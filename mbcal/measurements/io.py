@@ -518,6 +518,7 @@ def read_measurements(path: str | os.PathLike[str], model=None) -> MeasurementSe
         raise MeasurementFileError(f"{display} is larger than {MAX_FILE_BYTES // 2**20} MiB")
     builder = SetBuilder(model, display)
     suffix = p.suffix.lower()
+    builder.row_word = "row" if suffix in (".csv", ".txt") else "measurement"
     if suffix in (".csv", ".txt"):
         # Streamed row by row (docs/reliability.md: 10⁶ rows).
         with open(p, "rb") as handle:

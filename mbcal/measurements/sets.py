@@ -12,13 +12,14 @@ from __future__ import annotations
 import math
 import operator
 import re
+import warnings
 from collections.abc import Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any, NoReturn, SupportsIndex, overload
 
 import numpy as np
 
-from mbcal.errors import MbcalError, MeasurementFileError, SourceSpan, shown, suggest
+from mbcal.errors import MbcalError, MeasurementFileError, MeasurementFileWarning, SourceSpan, shown, suggest
 from mbcal.measurements.protocol import MeasurementModel
 from mbcal.measurements.registry import call_model, declared_models, registry
 from mbcal.units import ANGLE, DIMENSIONLESS, LENGTH, UNITS, Dim, describe
@@ -474,6 +475,12 @@ class SetBuilder:
         # Per camera (its index): the image points with values, and those outside its image
         # (:data:`IMAGE_MARGIN`), with the first of them (id, where, u, v): see _check_image_points.
         self._image_points: dict[int, list[Any]] = {}
+        # The rows of a file without an id, by a hash of what they say (kind, configuration, names,
+        # values, σ, data) → the first such measurement's index; and the rows that repeat an earlier
+        # one to all digits (where, where the first is): a row pasted twice (see _check_repeats).
+        self._rows: dict[int, int] = {}
+        self._repeats: list[tuple[SourceSpan, SourceSpan]] = []
+        self.row_word = "row"  # what the file's warnings call a measurement ("row" in CSV)
 
     def configuration(self, config: str, where: SourceSpan | None) -> None:
         """Note a configuration the file lists (with or without known values) and where."""
@@ -629,7 +636,41 @@ class SetBuilder:
         shared = self._refs.get(pairs := tuple(refs.items()))
         if shared is None and len(self._refs) < 100_000:
             shared = self._refs[pairs] = refs
-        self.measurements.append(Measurement(mid, kind, config, shared or refs, value, cov, data or _NO_DATA, where))
+        m = Measurement(mid, kind, config, shared or refs, value, cov, data or _NO_DATA, where)
+        self.measurements.append(m)
+        if where is not None and value is not None and not str(record.get("id") or "").strip():
+            self._note_repeat(m, hash((kind, config, pairs, value.tobytes(), cov.tobytes(), *data.items())))
+
+    def _note_repeat(self, m: Measurement, key: int) -> None:
+        """Note a measurement of a file that repeats an earlier one without an id to all digits:
+        same kind, configuration, names, values, σ and data (``key``: a hash of them; compared
+        exactly when it matches)."""
+        index = self._rows.setdefault(key, len(self.measurements) - 1)
+        first = self.measurements[index]
+        if (
+            first is not m
+            and first.where is not None
+            and m.where is not None
+            and (first.kind, first.config, first.refs, first.data) == (m.kind, m.config, m.refs, m.data)
+            and np.array_equal(first.value, m.value)  # type: ignore[arg-type]  # both noted with a value
+            and np.array_equal(first.cov, m.cov)
+        ):
+            self._repeats.append((m.where, first.where))
+
+    def _check_repeats(self) -> None:
+        """Warn (:class:`~mbcal.errors.MeasurementFileWarning`) of rows that repeat an earlier row to
+        all digits: almost always a row pasted twice, which counts its measurement twice (its σ as if
+        halved in variance).  Not refused: one point measured twice can give the same number."""
+        if not self._repeats:
+            return
+        (where, first), more = self._repeats[0], self._repeats[1:]
+        word = self.row_word
+        text = f"{where.path}:{where.line}: {word} repeats line {first.line} (same kind, names, configuration, "
+        text += "values and σ: pasted twice?); both are used"
+        if more:
+            lines = ", ".join(str(w.line) for w, _ in more[:5]) + (", …" if len(more) > 5 else "")
+            text += f"; {len(more)} more {word}s repeat earlier ones (lines {lines})"
+        warnings.warn(MeasurementFileWarning(text), stacklevel=4)
 
     def _image_point(self, camera: int, value: np.ndarray, mid: str, where: SourceSpan | None) -> None:
         """Count an image point, and whether it lies outside its camera's image (by more than
@@ -769,6 +810,7 @@ class SetBuilder:
             raise MeasurementFileError("no measurements", SourceSpan(self.path, 1, 1))
         self._check_configurations()
         self._check_image_points()
+        self._check_repeats()
         if self.model is not None and self.known:  # as --set: sizes positive, poses finite with them
             from mbcal.language.check import check_at_nominal
 
