@@ -41,6 +41,7 @@ import hashlib
 import math
 import os
 import re
+import stat
 import sys
 import threading
 import time
@@ -56,12 +57,14 @@ import numpy as np
 
 from mbcal import _sources
 from mbcal._collector import gc_paused
-from mbcal.errors import MbcalError
+from mbcal.errors import MbcalError, MbcalWarning
 from mbcal.outputs import atomic_write
 from mbcal.resources import find_bundled, package_root
 
 __all__ = [
     "cache_dir",
+    "cache_dir_problem",
+    "CacheOffWarning",
     "cache_contents",
     "clear_cache",
     "Cleared",
@@ -125,14 +128,66 @@ PROGRAMS = ProgramCache(8)
 _LOADED = ProgramCache(8)
 
 
-def cache_dir() -> Path | None:
-    """The cache folder, or None when caching is off."""
+def _configured_dir() -> Path | None:
+    """The cache folder the environment names (None: MBCAL_CACHE=off), usable or not."""
     if os.environ.get("MBCAL_CACHE", "").lower() in ("0", "off", "no", "false"):
         return None
     if os.environ.get("MBCAL_CACHE_DIR"):
         return Path(os.environ["MBCAL_CACHE_DIR"])
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     return Path(base) / "mbcal"
+
+
+def cache_dir_problem() -> str | None:
+    """Why the cache folder the environment names cannot be one, or None: it (or the nearest of
+    its parents that exists) is a file or something else that is not a folder.  A folder that
+    merely cannot be written is not a problem here: the caches then run without writing, as
+    before (an unwritable home)."""
+    folder = _configured_dir()
+    if folder is None:
+        return None
+    for path in (folder, *folder.parents):
+        try:
+            mode = path.stat().st_mode
+        except (FileNotFoundError, NotADirectoryError):
+            continue  # not there (yet): its parent says whether it can be made
+        except OSError:
+            return None  # unreadable: left to the caches, which run without it
+        if stat.S_ISDIR(mode):
+            return None
+        named = "$MBCAL_CACHE_DIR" if os.environ.get("MBCAL_CACHE_DIR") else "the cache folder"
+        if path == folder:
+            return f"{named} ({folder}) is not a folder"
+        return f"{named} ({folder}) is under {path}, which is not a folder"
+    return None
+
+
+class CacheOffWarning(MbcalWarning):
+    """The cache folder cannot be one (a file): mbcal runs without its caches (:func:`cache_dir`)."""
+
+
+_CACHE_OFF_SAID: set[str] = set()
+
+
+def cache_dir() -> Path | None:
+    """The cache folder, or None when caching is off: ``MBCAL_CACHE=off``, or a folder that is a
+    file (or under one), which is said once per process as a :class:`CacheOffWarning`."""
+    folder = _configured_dir()
+    if folder is None:
+        return None
+    problem = cache_dir_problem()
+    if problem is None:
+        return folder
+    if problem not in _CACHE_OFF_SAID:
+        _CACHE_OFF_SAID.add(problem)
+        warnings.warn(
+            CacheOffWarning(
+                f"the cache is off: {problem}; nothing is kept between runs, so each command starts slower "
+                "(set MBCAL_CACHE_DIR to a folder, or MBCAL_CACHE=off to say so)"
+            ),
+            stacklevel=2,
+        )
+    return None
 
 
 # The parts of the cache folder: what each holds and the names of the files written there (by

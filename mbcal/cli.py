@@ -36,7 +36,15 @@ import numpy as np  # noqa: E402
 
 from mbcal import __version__  # noqa: E402
 from mbcal._collector import end_start_up, pause_start_up  # noqa: E402
-from mbcal.cache import CACHE_PARTS, PROGRAM_PARTS, cache_contents, cache_dir, clear_cache, max_part_bytes  # noqa: E402
+from mbcal.cache import (  # noqa: E402
+    CACHE_PARTS,
+    PROGRAM_PARTS,
+    cache_contents,
+    cache_dir,
+    cache_dir_problem,
+    clear_cache,
+    max_part_bytes,
+)
 from mbcal.errors import MbcalError, MbcalWarning, suggest  # noqa: E402
 from mbcal.outputs import (  # noqa: E402
     INTERRUPTED,
@@ -116,6 +124,12 @@ def _bytes_text(n: int) -> str:
 
 
 def cmd_cache(args: argparse.Namespace) -> int:
+    problem = cache_dir_problem()
+    if problem is not None:  # not shown as an empty cache: nothing is cached there, nothing can be
+        raise MbcalError(
+            f"{problem}: mbcal cannot keep its cache there, and runs without one",
+            hint="set MBCAL_CACHE_DIR to a folder (it is made when missing), or MBCAL_CACHE=off",
+        )
     folder = cache_dir()
     bound = max_part_bytes() if folder is not None else 0  # a bad MBCAL_CACHE_MAX_MB is said before clearing
     removed = clear_cache(folder, args.clear or None) if folder is not None and args.clear is not None else None
@@ -1711,6 +1725,8 @@ def build_parser() -> argparse.ArgumentParser:
         256) and the parsed model files under 256 entries, the least recently used going first:
         this shows how many files each part holds and their size, and --clear removes them
         (only files with the names mbcal's caches give them; a later run rebuilds what it needs).
+        A cache folder that is a file is an error here (exit status 2); the other commands then
+        run without a cache, with a warning.
         """,
         "mbcal cache --clear exports jax",
         cmd_cache,

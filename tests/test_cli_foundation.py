@@ -261,3 +261,30 @@ def test_cache_shows_each_part_and_clears_only_the_files_mbcal_wrote(tmp_path, m
     off = run("cache", "--clear")
     assert off.returncode == 0 and "caching is off" in off.stdout
     assert kept.read_text() == "tables"
+
+
+def test_a_cache_folder_that_is_a_file_is_said_not_shown_as_an_empty_cache(tmp_path, monkeypatch):
+    """MBCAL_CACHE_DIR naming a regular file: 'mbcal cache' showed an empty cache and exited 0,
+    and every other command ran without its caches in silence."""
+    from mbcal import cache
+
+    afile = tmp_path / "cache.txt"
+    afile.write_text("not a folder\n")
+    monkeypatch.delenv("MBCAL_CACHE", raising=False)
+    monkeypatch.setenv("MBCAL_CACHE_DIR", str(afile))
+    shown = run("cache")
+    assert shown.returncode == 2 and shown.stdout == ""
+    assert shown.stderr.startswith(f"$MBCAL_CACHE_DIR ({afile}) is not a folder: mbcal cannot keep its cache there")
+    checked = run("check", str(MODELS / "lever.mdl"))
+    assert checked.returncode == 0
+    said = f"warning: the cache is off: $MBCAL_CACHE_DIR ({afile}) is not a folder; nothing is kept between runs"
+    assert checked.stderr.count(said) == 1, checked.stderr
+    # in Python: None (no cache), said once per process; a folder under a file likewise
+    monkeypatch.setattr(cache, "_CACHE_OFF_SAID", set())
+    with pytest.warns(cache.CacheOffWarning) as caught:
+        assert cache.cache_dir() is None and cache.cache_dir() is None
+    assert len(caught) == 1
+    monkeypatch.setenv("MBCAL_CACHE_DIR", str(afile / "sub"))
+    assert cache.cache_dir_problem() == f"$MBCAL_CACHE_DIR ({afile / 'sub'}) is under {afile}, which is not a folder"
+    monkeypatch.setenv("MBCAL_CACHE_DIR", str(tmp_path / "new" / "folder"))  # missing: made when used
+    assert cache.cache_dir_problem() is None and cache.cache_dir() == tmp_path / "new" / "folder"
