@@ -65,7 +65,7 @@ from mbcal.structured import (
     square_root_information,
     structure_of,
 )
-from mbcal.units import at_least, whole
+from mbcal.units import ANGLE, at_least, whole
 
 __all__ = [
     "calibrate",
@@ -410,6 +410,21 @@ def _leverage_tested(problem: Problem, structure: Structure | None) -> bool | li
     return [k for k, s in enumerate(problem.measurement_rows) if s.stop > s.start and sparse[rows[s.start]]]
 
 
+def _other_solutions(problem: Problem, solved: Any, obs: Any, chi2: float) -> list:
+    """The fit verdict's other solutions as good as the estimate (:func:`mbcal.fit.distinct_minima`):
+    angles known by their dimension (radians written as plain numbers too)."""
+    params = problem.params
+    return distinct_minima(
+        solved,
+        obs,
+        _units(problem),
+        local=problem.local,
+        scale=chi2,
+        ranges=(params.lower, params.upper),
+        angles=[params.info(name).given_dim == ANGLE for name in params.names],
+    )
+
+
 def _analysed_by_blocks(structure: Structure | None, analysis: str) -> bool:
     """Whether the report of a structured solve is computed from the blocks (``CalibrateOptions.analysis``)."""
     _check_analysis(analysis)
@@ -549,9 +564,7 @@ def calibrate(
         config=o.fit,
         observability=observability,
         accept=o.accept_poor_fit,
-        ambiguous=distinct_minima(
-            solved, obs, _units(problem), local=problem.local, scale=chi2, ranges=(params.lower, params.upper)
-        ),
+        ambiguous=_other_solutions(problem, solved, obs, chi2),
         leverage=_leverage_tested(problem, structure),
     )
     return _result(problem, solved, x, x_init, obs, rows, verdict, o, config, t0)
@@ -710,9 +723,7 @@ def _calibrate_by_blocks(
         accept=o.accept_poor_fit,
         linearize=lambda kept: StructuredLinear(structure, r, Jc, kept),
         leverage=_leverage_tested(problem, structure),
-        ambiguous=distinct_minima(
-            solved, obs, _units(problem), local=problem.local, scale=chi2, ranges=(params.lower, params.upper)
-        ),
+        ambiguous=_other_solutions(problem, solved, obs, chi2),
     )
     return _result(problem, solved, x, x_init, obs, rows, verdict, o, config, t0)
 

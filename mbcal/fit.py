@@ -213,6 +213,17 @@ SYSTEMATIC_MIN_SIZE = 0.1
 """… and the shared part is at least this fraction of σ (not a numerical ripple of a fit to
 noise-free data)."""
 
+UNTESTED_LEVERAGE = 0.99
+"""A measurement is named untested when one of its directions has a leverage (an eigenvalue of
+its block of the hat matrix) above this: an error along it leaves at most 1 % of itself in the
+residual, so it must be 10× larger than elsewhere to be seen."""
+
+HELD_Z = 3.090232306167813
+"""An unknown held at a hard limit makes the result untrustworthy when the fit without the limit
+would put it beyond by more than this many of its σ (the normal's one-sided point at the default
+threshold, 0.001): nearer, the limit and the data agree within the noise — a gap whose true value
+is 0 lands on its limit [0, ∞) half the time."""
+
 AMBIGUOUS_MARGIN = 3.841
 """Restarts that converged with S at most this much above the best one (χ²'s 95 % point for one
 degree of freedom, in the units of the stated σ, or of the scaled covariance's) fit as well …"""
@@ -346,14 +357,16 @@ class FitVerdict:
     """Another solution the restarts found, as good as the estimate and far from it
     (:func:`distinct_minima`, kind ``ambiguous``): not trustworthy, ``--accept-poor-fit`` accepts it."""
     untested: tuple[str, ...] = ()
-    """Measurements (ids) that alone determine part of the unknowns: deleting one leaves a direction
-    undetermined, so its residual is zero whatever its error and no test can see a mistake in it
-    (the tip of a lever whose two coordinates fix its angle and length).  Said beside the verdict;
+    """Measurements (ids) that alone, or nearly alone, determine part of the unknowns (a leverage
+    above :data:`UNTESTED_LEVERAGE`): the part of their error that moves those unknowns leaves
+    (almost) no residual, so no test can see a mistake there (the tip of a lever whose two
+    coordinates fix its angle and length).  Said beside the verdict;
     like a fit without redundancy, it does not make the result untrustworthy (a problem solved by
     blocks: the measurements of configurations with few rows, at most twice their unknowns)."""
     held: tuple[str, ...] = ()
-    """Unknowns held at a hard limit the data push past (σ 0: the limit, not a measurement of it):
-    not trustworthy, ``--accept-poor-fit`` accepts it."""
+    """Unknowns held at a hard limit the data push past significantly (the fit without the limit
+    beyond it by more than :data:`HELD_Z` σ; σ 0 is the limit's, not a measurement of it): not
+    trustworthy, ``--accept-poor-fit`` accepts it.  Nearer the limit: a note."""
     systematic: tuple[Suspect, ...] = ()
     """Cameras whose image points' residuals are smooth across the image, or sets of 3-D points
     whose residuals are smooth in space (neighbouring points off alike): a model error the χ² test
@@ -450,14 +463,15 @@ class FitVerdict:
             more = len(self.untested) - 10
             shown = ", ".join(self.untested[:10]) + (f" and {more} more" if more > 0 else "")
             out.append(
-                f"  untested: {shown} — each alone determines part of the unknowns, so its residual is ~0 whatever "
-                "its error and no test can see a mistake in it (measure more of what it measures)"
+                f"  untested: {shown} — each alone (or nearly alone: leverage ≥ {UNTESTED_LEVERAGE:g}) determines "
+                "part of the unknowns: the part of its error that moves them leaves (almost) no residual, so no test "
+                "can see a mistake there (measure more of what it measures)"
             )
         if self.held:
             out.append(
                 f"  held at a hard limit: {', '.join(self.held)} — the data put "
-                f"{'it' if len(self.held) == 1 else 'them'} beyond the limit, so σ 0 there is the limit's, not a "
-                "measurement's (widen the range, or check the model and the data)"
+                f"{'it' if len(self.held) == 1 else 'them'} beyond the limit by more than {HELD_Z:.3g} σ, so σ 0 "
+                "there is the limit's, not a measurement's (widen the limit, or check the model and the data)"
             )
         if not self.determined:
             missing = (
@@ -504,7 +518,7 @@ class FitVerdict:
         if self.ambiguous:
             why.append("another solution fits as well")
         if self.held:
-            why.append("held at a hard limit")
+            why.append(f"{'an unknown is' if len(self.held) == 1 else 'unknowns are'} held at a hard limit")
         if self.determined and not self.well_determined:
             why.append("weakly determined")
         text = f"NOT trustworthy: {' and '.join(why)}"
@@ -645,9 +659,10 @@ class _Linear:
         proj = V.T @ g
         return float(rB @ rB + proj @ (inv * proj)), int(pos.size - lost)
 
-    def deletions(self, blocks: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    def deletions(self, blocks: Sequence[np.ndarray], floor: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`deletion` of many small blocks (one measurement each), batched by block size in
-        the block's own dimension: r_Bᵀ(I − Q_B Q_Bᵀ)⁻¹ r_B."""
+        the block's own dimension: r_Bᵀ(I − Q_B Q_Bᵀ)⁻¹ r_B; the degrees of freedom are the
+        eigenvalues of I − Q_B Q_Bᵀ above ``floor``."""
         t = np.zeros(len(blocks))
         d = np.zeros(len(blocks), dtype=np.int64)
         by_size: dict[int, list[int]] = {}
@@ -661,7 +676,7 @@ class _Linear:
             QB = self.U[pos]  # (N, size, rank)
             A = np.eye(size) - QB @ np.swapaxes(QB, 1, 2)
             w, V = np.linalg.eigh(A)
-            good = w > 1e-9
+            good = w > floor
             inv = np.where(good, 1.0 / np.where(good, w, 1.0), 0.0)
             proj = np.einsum("nij,ni->nj", V, rB)
             t[idx] = np.sum(inv * proj**2, axis=1)
@@ -823,6 +838,7 @@ def distinct_minima(
     local: Any = None,
     scale: float = 1.0,
     ranges: tuple[np.ndarray, np.ndarray] | None = None,
+    angles: Sequence[bool] | None = None,
 ) -> list[Suspect]:
     """Other solutions as good as the estimate: restarts of ``solved`` (a
     :class:`mbcal.solver.LeastSquaresResult`) that converged with S at most
@@ -832,7 +848,8 @@ def distinct_minima(
     one rotation's two angle triples are one solution), and angles are compared modulo 2π.
     ``ranges``: the search ranges (lower, upper; nan where none): a restart outside an unknown's
     range where the estimate is inside it is the other side of what the model says the value
-    could be (a lever turned half a turn with a negative length), not a second answer.  One
+    could be (a lever turned half a turn with a negative length), not a second answer.
+    ``angles``: which unknowns are angles (default: those shown in deg or rad).  One
     :class:`Suspect` (kind ``ambiguous``) naming the nearest-S such restart and its farthest
     unknown, or none."""
     best = int(solved.best)
@@ -852,7 +869,10 @@ def distinct_minima(
         others = represented_after(local, others, np.broadcast_to(here, others.shape).copy())
     names = list(obs.names)
     delta = others - here
-    angle = np.array([units.get(name) in _ANGLE_UNITS for name in names], dtype=bool)
+    if angles is None:  # from the display units; a caller who knows the dimensions says (radians written plain)
+        angle = np.array([units.get(name) in _ANGLE_UNITS for name in names], dtype=bool)
+    else:
+        angle = np.asarray(angles, dtype=bool)
     delta[:, angle] = (delta[:, angle] + math.pi) % (2 * math.pi) - math.pi
     if ranges is not None:
         lower, upper = (np.asarray(v, dtype=float) for v in ranges)
@@ -899,6 +919,35 @@ def distinct_minima(
             description,
         )
     ]
+
+
+def _significantly_held(obs: Observability, r: np.ndarray, J: Any, linearize: Any) -> tuple[tuple[str, ...], list[str]]:
+    """The unknowns held at a hard limit that the data push beyond it by more than :data:`HELD_Z`
+    of their σ — the fit linearised at the estimate and refitted without the limits (a least-squares
+    step from it over every unknown) — and a note for each of the others: at its limit within the
+    noise.  Without the dense J (a problem analysed by blocks) every held unknown counts."""
+    sides: dict[str, str] = dict(getattr(obs, "active_bounds", {}) or {})
+    if not sides:
+        return (), []
+    if J is None or linearize is not None:
+        return tuple(sides), []
+    Jf = np.array(J() if callable(J) else J, dtype=float)
+    pinv = np.linalg.pinv(Jf, rcond=_RTOL)
+    step = -(pinv @ np.asarray(r, dtype=float))
+    sigma = np.sqrt(np.maximum(np.einsum("ij,ij->i", pinv, pinv), 0.0))
+    held, notes = [], []
+    for name, side in sides.items():
+        j = list(obs.names).index(name)
+        beyond = -step[j] if side == "lower" else step[j]
+        z = beyond / sigma[j] if sigma[j] > 0 else 0.0
+        if z > HELD_Z:
+            held.append(name)
+        else:
+            notes.append(
+                f"{name} is at its {side} limit within the noise (the fit without the limit would put it "
+                f"{max(z, 0.0):.2g} σ beyond): its σ 0 is the limit's"
+            )
+    return tuple(held), notes
 
 
 def _bonferroni(p: float | np.ndarray, count: int) -> Any:
@@ -1058,13 +1107,14 @@ def assess_fit(
             Jd[:, held] = 0.0  # unknowns held at an active hard bound are not refitted
         return Jd
 
+    held_names, held_notes = _significantly_held(obs, r, J, linearize)
     untested: tuple[str, ...] = ()
     probed = list(range(len(ms))) if leverage is True else [int(i) for i in (leverage or ())]
     if probed and (J is not None or linearize is not None):
         # d < the block's size: deleting the measurement loses rank, its residual is forced to ~0
         every = np.arange(r.shape[0])
         whole = linearize(every) if linearize is not None else _Linear(r, dense_j(), every)
-        _, d = whole.deletions([blocks[i] for i in probed])
+        _, d = whole.deletions([blocks[i] for i in probed], floor=1.0 - UNTESTED_LEVERAGE)
         untested = tuple(ids[i] for i, di in zip(probed, d) if len(blocks[i]) and di < len(blocks[i]))
     common = dict(
         threshold=alpha,
@@ -1074,7 +1124,8 @@ def assess_fit(
         systematic=systematic,
         ambiguous=tuple(ambiguous),
         untested=untested,
-        held=tuple(getattr(obs, "active_bounds", {})),
+        held=held_names,
+        notes=tuple(held_notes),
         **weak,
     )
     if dof == 0:
@@ -1243,7 +1294,7 @@ def assess_fit(
         # report then recommends.
         found = systematic_residuals(problem, r, alpha, exclude=sorted(outlier_set)) if robust else []
         common["systematic"] = tuple(found)
-    notes: list[str] = []
+    notes: list[str] = list(common.pop("notes"))  # type: ignore[arg-type]
     if robust:
         # The robust loss was asked to ignore outliers: the test covers what is left.
         aside = tuple(ids[i] for i in sorted(outliers, key=lambda i: -normalized[i]))

@@ -1468,8 +1468,9 @@ class StructuredLinear:
         same = b[..., :, None] == b[..., None, :]
         return np.einsum("...ik,...jk->...ij", Ua, a) * same + np.einsum("...ik,kl,...jl->...ij", z, self.f.Sinv, z)
 
-    def deletions(self, blocks: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        """How much S drops when each block of rows alone is set aside (and its degrees of freedom)."""
+    def deletions(self, blocks: Sequence[np.ndarray], floor: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
+        """How much S drops when each block of rows alone is set aside (and its degrees of freedom:
+        the eigenvalues of I − H_BB above ``floor``)."""
         t = np.zeros(len(blocks))
         d = np.zeros(len(blocks), dtype=np.int64)
         by_size: dict[int, list[int]] = {}
@@ -1479,14 +1480,14 @@ class StructuredLinear:
             if size == 0:
                 continue
             pos = self.position[np.stack([blocks[k] for k in members])]
-            t[members], d[members] = self._drop(pos)
+            t[members], d[members] = self._drop(pos, floor)
         return t, d
 
-    def _drop(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _drop(self, pos: np.ndarray, floor: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
         rB = self.res[pos]
         A = np.eye(pos.shape[-1]) - self._hat(pos)
         w, V = np.linalg.eigh(A)
-        good = w > 1e-9
+        good = w > floor
         inv = np.where(good, 1.0 / np.where(good, w, 1.0), 0.0)
         proj = np.einsum("...ij,...i->...j", V, rB)
         return np.sum(inv * proj**2, axis=-1), np.sum(good, axis=-1)
