@@ -252,7 +252,7 @@ def report(results: dict) -> str:
         f"| mbcal `calibrate_cameras` (restarts chosen — {w['chosen']}; analysis, fit verdict) | "
         f"{w['mbcal_s'] * 1e3:.1f} | {w['ratio']:.1f}× ({verdict(w['ratio'], GOALS['warm_ratio'])}) | "
         f"{w['traces']} / {w['compiles']} |",
-        f"| mbcal `calibrate_cameras(restarts=4)` (the default until this stop) | {w['four_s'] * 1e3:.1f} | "
+        f"| mbcal `calibrate_cameras(restarts=4)` (the default until 2026-11-25) | {w['four_s'] * 1e3:.1f} | "
         f"{w['four_s'] / w['opencv_s']:.1f}× | — |",
         f"| `cv2.calibrateCamera` (k1, k2, p1, p2, k3) | {w['opencv_s'] * 1e3:.1f} | 1× | — |",
         "",
@@ -526,6 +526,12 @@ PROFILE = [
     "  a 2 × 2 eigenvalue problem per view): the warm call now sits at the goal's limit — 1.2×,",
     "  1.1×, 0.9× and 1.0× over OpenCV in four runs of this page within an hour (the table is the",
     "  last: the machine's speed wanders more than the change).",
+    "- The stop of 2026-11-25 (10:15–13:00 UTC) added to the fit verdict (other solutions as good,",
+    "  unknowns held at a limit, untested measurements, 3-D systematic residuals); none runs for",
+    "  Zhang's start alone on full views (one restart; no configuration with few corners), and an",
+    "  A/B of the stop's first and last commits (alternating processes, 6 runs each) gave the same",
+    "  times within the noise (medians ~18 ms both, on a machine ~15 % slower than in the morning:",
+    "  OpenCV 15–18 ms).  Three runs of this page at its end: 1.1×, 1.0× (1.02) and the table's.",
     "",
     "What remains (measured this stop, by hand):",
     "",
