@@ -1109,6 +1109,7 @@ def assess_fit(
 
     held_names, held_notes = _significantly_held(obs, r, J, linearize)
     untested: tuple[str, ...] = ()
+    whole: Any = None  # the linearisation on every row: the outlier search's first round reuses it
     probed = list(range(len(ms))) if leverage is True else [int(i) for i in (leverage or ())]
     if probed and (J is not None or linearize is not None):
         # d < the block's size: deleting the measurement loses rank, its residual is forced to ~0
@@ -1143,6 +1144,8 @@ def assess_fit(
         return np.concatenate(parts) if parts else np.zeros(0, dtype=np.int64)
 
     def linear(kept: np.ndarray) -> Any:
+        if whole is not None and kept.all():
+            return whole
         rows = np.concatenate([rows_of(np.nonzero(kept)[0]), prior_rows])
         if linearize is not None:
             return linearize(rows)

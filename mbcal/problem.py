@@ -57,41 +57,38 @@ class Group:
         return len(self.members) * self.model.size
 
 
-def _predicted(g: Group, scenes: Scene) -> Array:
-    """The predictions of a group, flat (n · size,) as h stacks them.
-
-    A model's ``predict`` must give (n, len(values)) — (n,) too when it has one value — and its
-    shape is checked here, as it is traced (the shape is static: no cost in the compiled
-    program).  Flattened unchecked, an (n, 2) from a model of one value, or a (2, n) for
-    (n, 2), would shift or transpose the rows of h against y, and every later kind's with them:
-    a wrong fit that the verdict could call trustworthy.
-    """
+def _called(g: Group, method: str, scenes: Scene, width: int) -> Array:
+    """A group's ``predict`` (``width`` = its number of values) or ``visible`` (``width`` 0: one
+    flag each), its shape checked as it is traced — (n, width), or (n,) for one value or a flag —
+    static, so no cost in the compiled program.  Flattened unchecked, an (n, 2) from a model of
+    one value, or a (2, n) for (n, 2), would shift or transpose the rows of h against y, and every
+    later kind's with them: a wrong fit that the verdict could call trustworthy."""
     mm, n = g.model, len(g.batch)
-    out = call_model(mm, "predict", scenes, g.batch)
+    out = call_model(mm, method, scenes, g.batch)
     shape = tuple(jnp.shape(out))
-    if shape != (n, mm.size) and not (mm.size == 1 and shape == (n,)):
-        either = f" or ({n},)" if mm.size == 1 else ""
-        values = ", ".join(repr(v) for v in mm.values)
+    allowed = {(n,)} if width == 0 else {(n, width), (n,)} if width == 1 else {(n, width)}
+    if shape not in allowed:
+        if width:
+            values = ", ".join(repr(v) for v in mm.values)
+            either = f" or ({n},)" if width == 1 else ""
+            expected = f"({n}, {width}){either}: one row per measurement, one column per value ({values})"
+        else:
+            expected = f"({n},): one flag per measurement"
         raise MeasurementModelError(
-            f"{describe(mm)}: predict returned an array of shape {shape} for {n} measurements; "
-            f"expected ({n}, {mm.size}){either}: one row per measurement, one column per value ({values})",
-            hint="see 'The protocol' in docs/plugins.md",
-        )
-    return jnp.reshape(out, (-1,))
-
-
-def _visible(g: Group, scenes: Scene) -> Array:
-    """A group's visibility flags (n,), their shape checked as they are traced (see :func:`_predicted`)."""
-    mm, n = g.model, len(g.batch)
-    out = call_model(mm, "visible", scenes, g.batch)
-    shape = tuple(jnp.shape(out))
-    if shape != (n,):
-        raise MeasurementModelError(
-            f"{describe(mm)}: visible returned an array of shape {shape} for {n} measurements; "
-            f"expected ({n},): one flag per measurement",
+            f"{describe(mm)}: {method} returned an array of shape {shape} for {n} measurements; expected {expected}",
             hint="see 'The protocol' in docs/plugins.md",
         )
     return out
+
+
+def _predicted(g: Group, scenes: Scene) -> Array:
+    """The predictions of a group, flat (n · size,) as h stacks them (:func:`_called`)."""
+    return jnp.reshape(_called(g, "predict", scenes, g.model.size), (-1,))
+
+
+def _visible(g: Group, scenes: Scene) -> Array:
+    """A group's visibility flags (n,) (:func:`_called`)."""
+    return _called(g, "visible", scenes, 0)
 
 
 class Problem:

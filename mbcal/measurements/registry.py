@@ -102,9 +102,7 @@ def register(model: MeasurementModel | type[MeasurementModel], *, replace: bool 
     if not replace and instance.kind not in _EXTRA and instance.kind in installed:
         current = installed[instance.kind]
         source = (
-            "one of mbcal's built-in measurement models"
-            if type(current).__module__.startswith("mbcal.")
-            else f"provided by {describe(current)}"
+            "one of mbcal's built-in measurement models" if _builtin(current) else f"provided by {describe(current)}"
         )
         raise ValueError(
             f"register({type(instance).__name__}): kind '{instance.kind}' is {source}; registering "
@@ -116,10 +114,15 @@ def register(model: MeasurementModel | type[MeasurementModel], *, replace: bool 
     return instance
 
 
+def _builtin(model: MeasurementModel) -> bool:
+    """Whether mbcal itself defines the model (its failures are mbcal's bugs, not a plugin's)."""
+    return type(model).__module__.startswith("mbcal.")
+
+
 def _take_digest(instance: MeasurementModel) -> None:
     """A plugin's source digested as it is loaded (mbcal.cache.source_fingerprint): a file edited
     later is not the code that runs."""
-    if not type(instance).__module__.startswith("mbcal."):
+    if not _builtin(instance):
         source_fingerprint(instance)
 
 
@@ -131,7 +134,7 @@ def describe(model: MeasurementModel) -> str:
     provided (``measurement model 'height' (package mbcal-example-plugin)``)."""
     text = f"measurement model '{getattr(model, 'kind', '') or type(model).__name__}'"
     known = _PACKAGES.get(id(model))
-    if known is not None and known[0] is model and not type(model).__module__.startswith("mbcal."):
+    if known is not None and known[0] is model and not _builtin(model):
         text += f" (package {known[1]})"
     return text
 
@@ -148,7 +151,7 @@ def call_model(model: MeasurementModel, method: str, *args: Any, where: SourceSp
     solve.  ``where``: the place the error is about (the measurement being checked).
     """
     bound = getattr(model, method)
-    if type(model).__module__.startswith("mbcal."):
+    if _builtin(model):
         return bound(*args)
     try:
         return bound(*args)
