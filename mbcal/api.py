@@ -407,7 +407,11 @@ def _leverage_tested(problem: Problem, structure: Structure | None) -> bool | li
     rows = structure.row_block[: problem.size]
     counts = np.bincount(rows, minlength=structure.n_blocks)
     sparse = counts <= 2 * structure.nb
-    return [k for k, s in enumerate(problem.measurement_rows) if s.stop > s.start and sparse[rows[s.start]]]
+    blocks = problem.row_blocks
+    has_rows = blocks.sizes > 0
+    tested = np.zeros(len(blocks), dtype=bool)
+    tested[has_rows] = sparse[rows[blocks.starts[has_rows]]]
+    return np.nonzero(tested)[0].tolist()
 
 
 def _other_solutions(problem: Problem, solved: Any, obs: Any, chi2: float) -> list:

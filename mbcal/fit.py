@@ -77,7 +77,7 @@ import numpy as np
 
 from mbcal.measurements.registry import get_model
 from mbcal.observability import Observability, ObservabilityConfig, scale_stand_ins, yardstick_text
-from mbcal.problem import Problem
+from mbcal.problem import Problem, RowBlocks, blocks_by_size
 from mbcal.solver import Status, represented_after
 from mbcal.text import fmt
 from mbcal.units import to_display
@@ -659,19 +659,14 @@ class _Linear:
         proj = V.T @ g
         return float(rB @ rB + proj @ (inv * proj)), int(pos.size - lost)
 
-    def deletions(self, blocks: Sequence[np.ndarray], floor: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
+    def deletions(self, blocks: RowBlocks | Sequence[np.ndarray], floor: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`deletion` of many small blocks (one measurement each), batched by block size in
         the block's own dimension: r_Bᵀ(I − Q_B Q_Bᵀ)⁻¹ r_B; the degrees of freedom are the
         eigenvalues of I − Q_B Q_Bᵀ above ``floor``."""
         t = np.zeros(len(blocks))
         d = np.zeros(len(blocks), dtype=np.int64)
-        by_size: dict[int, list[int]] = {}
-        for k, b in enumerate(blocks):
-            by_size.setdefault(len(b), []).append(k)
-        for size, idx in by_size.items():
-            if size == 0:
-                continue
-            pos = self.position[np.stack([blocks[k] for k in idx])]  # (N, size)
+        for size, idx, rows in blocks_by_size(blocks):
+            pos = self.position[rows]  # (N, size)
             rB = self.res[pos]  # (N, size)
             QB = self.U[pos]  # (N, size, rank)
             A = np.eye(size) - QB @ np.swapaxes(QB, 1, 2)
@@ -698,19 +693,12 @@ def _neighbour_sums(uv: np.ndarray, res: np.ndarray) -> np.ndarray:
     d[:, np.arange(n), np.arange(n)] = np.inf
     kth = np.partition(d, SYSTEMATIC_NEIGHBOURS - 1, axis=2)[:, :, SYSTEMATIC_NEIGHBOURS - 1 : SYSTEMATIC_NEIGHBOURS]
     near = d <= kth  # each point's nearest (ties at the k-th distance all count)
-    pair = np.triu(near | np.swapaxes(near, 1, 2), 1)  # a pair once, whichever of its points found it
-    prod = np.einsum("vik,vjk->vij", res, res)
+    # a pair once, whichever of its points found it; the sums over the pairs only (issue 16)
+    v, i, j = np.nonzero(np.triu(near | np.swapaxes(near, 1, 2), 1))
+    prod = np.einsum("pk,pk->p", res[v, i], res[v, j])
     square = np.einsum("vik,vik->vi", res, res)
-    mean = 0.5 * (square[:, :, None] + square[:, None, :])
-    return np.stack(
-        [
-            np.sum(prod, axis=(1, 2), where=pair),
-            np.sum(prod * prod, axis=(1, 2), where=pair),
-            np.sum(mean, axis=(1, 2), where=pair),
-            np.sum(pair, axis=(1, 2)),
-        ],
-        axis=1,
-    )
+    mean = 0.5 * (square[v, i] + square[v, j])
+    return np.stack([np.bincount(v, w, minlength=len(uv)) for w in (prod, prod * prod, mean, None)], axis=1)
 
 
 def _neighbour_sums_large(uv: np.ndarray, res: np.ndarray) -> np.ndarray:
@@ -1096,7 +1084,7 @@ def assess_fit(
     systematic = tuple(systematic_residuals(problem, r, alpha))
     ms = problem.measurements.measurements
     ids = [m.id for m in ms]
-    blocks = [np.arange(s.start, s.stop) for s in problem.measurement_rows]
+    blocks = problem.row_blocks
     Jd: np.ndarray | None = None
 
     def dense_j() -> np.ndarray:
@@ -1115,8 +1103,9 @@ def assess_fit(
         # d < the block's size: deleting the measurement loses rank, its residual is forced to ~0
         every = np.arange(r.shape[0])
         whole = linearize(every) if linearize is not None else _Linear(r, dense_j(), every)
-        _, d = whole.deletions([blocks[i] for i in probed], floor=1.0 - UNTESTED_LEVERAGE)
-        untested = tuple(ids[i] for i, di in zip(probed, d) if len(blocks[i]) and di < len(blocks[i]))
+        _, d = whole.deletions(blocks.take(probed), floor=1.0 - UNTESTED_LEVERAGE)
+        sizes = blocks.sizes[probed]
+        untested = tuple(ids[probed[k]] for k in np.nonzero((sizes > 0) & (d < sizes))[0].tolist())
     common = dict(
         threshold=alpha,
         loss=str(loss),
@@ -1166,7 +1155,7 @@ def assess_fit(
             break
         lin = linear(kept)
         idx = np.nonzero(kept)[0]
-        t, d = lin.deletions([blocks[i] for i in idx])
+        t, d = lin.deletions(blocks.take(idx))
         s2 = _robust_scale(t, d)
         with np.errstate(invalid="ignore"):
             logp = np.where(d > 0, stats.chi2.logsf(t / s2, np.maximum(d, 1)), 0.0)

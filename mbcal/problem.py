@@ -38,7 +38,7 @@ from mbcal.scene import Scene
 
 Array = Any
 
-__all__ = ["Problem", "Group", "OrientationSteps"]
+__all__ = ["Problem", "Group", "OrientationSteps", "RowBlocks", "blocks_by_size"]
 
 
 @dataclass(frozen=True)
@@ -55,6 +55,46 @@ class Group:
     @property
     def rows(self) -> int:
         return len(self.members) * self.model.size
+
+
+@dataclass(frozen=True)
+class RowBlocks:
+    """Each measurement's rows of h as (start, size): block ``i`` is rows
+    ``starts[i] … starts[i] + sizes[i] − 1`` (size 0: a measurement without rows).  The arrays a
+    fit verdict works from, without a NumPy range per measurement (issue 16)."""
+
+    starts: np.ndarray
+    sizes: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.starts)
+
+    def __getitem__(self, i: int) -> np.ndarray:
+        return np.arange(self.starts[i], self.starts[i] + self.sizes[i])
+
+    def __iter__(self):
+        return (np.arange(a, a + b) for a, b in zip(self.starts.tolist(), self.sizes.tolist()))
+
+    def take(self, index: np.ndarray | Sequence[int]) -> RowBlocks:
+        index = np.asarray(index, dtype=np.int64)
+        return RowBlocks(self.starts[index], self.sizes[index])
+
+
+def blocks_by_size(blocks: RowBlocks | Sequence[np.ndarray]):
+    """``(size, positions, rows)`` for the blocks of each size > 0: their positions in
+    ``blocks`` and their rows as an (N, size) array — what batched deletions work from."""
+    if isinstance(blocks, RowBlocks):
+        for size in np.unique(blocks.sizes).tolist():
+            if size:
+                members = np.nonzero(blocks.sizes == size)[0]
+                yield size, members, blocks.starts[members, None] + np.arange(size)
+        return
+    by_size: dict[int, list[int]] = {}
+    for k, b in enumerate(blocks):
+        by_size.setdefault(len(b), []).append(k)
+    for size, listed in by_size.items():
+        if size:
+            yield size, np.asarray(listed, dtype=np.int64), np.stack([blocks[k] for k in listed])
 
 
 def _called(g: Group, method: str, scenes: Scene, width: int) -> Array:
@@ -229,12 +269,18 @@ class Problem:
     @functools.cached_property
     def measurement_rows(self) -> list[slice]:
         """The rows of h (and of the residual and Jacobian) of each measurement, in the set's order."""
-        rows: list[slice] = [slice(0, 0)] * len(self.measurements.measurements)
+        spans = self.row_blocks
+        return [slice(a, a + b) for a, b in zip(spans.starts.tolist(), spans.sizes.tolist())]
+
+    @functools.cached_property
+    def row_blocks(self) -> RowBlocks:
+        """:attr:`measurement_rows` as arrays (:class:`RowBlocks`)."""
+        starts = np.zeros(len(self.measurements.measurements), dtype=np.int64)
+        sizes = np.zeros(len(starts), dtype=np.int64)
         for g in self.groups:
-            s = g.model.size
-            for k, i in enumerate(g.members.tolist()):
-                rows[i] = slice(g.start + k * s, g.start + (k + 1) * s)
-        return rows
+            starts[g.members] = g.start + np.arange(len(g.members)) * g.model.size
+            sizes[g.members] = g.model.size
+        return RowBlocks(starts, sizes)
 
     @property
     def y(self) -> np.ndarray:
@@ -604,6 +650,7 @@ def _kept(problem: Problem) -> Problem:
     kept = copy.copy(problem)
     kept.__dict__.update(measurements=None, _columns=None, row_measurement=None, row_component=None)
     kept.__dict__.pop("measurement_rows", None)
+    kept.__dict__.pop("row_blocks", None)
     kept.local = OrientationSteps(kept) if kept.orientations else None
     return kept
 

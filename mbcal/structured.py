@@ -63,7 +63,7 @@ from mbcal.observability import (
     null_seen,
     point_uncertainties,
 )
-from mbcal.problem import Problem
+from mbcal.problem import Problem, RowBlocks, blocks_by_size
 from mbcal.solver import (
     LeastSquaresResult,
     LocalParameterisation,
@@ -1468,19 +1468,13 @@ class StructuredLinear:
         same = b[..., :, None] == b[..., None, :]
         return np.einsum("...ik,...jk->...ij", Ua, a) * same + np.einsum("...ik,kl,...jl->...ij", z, self.f.Sinv, z)
 
-    def deletions(self, blocks: Sequence[np.ndarray], floor: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
+    def deletions(self, blocks: RowBlocks | Sequence[np.ndarray], floor: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
         """How much S drops when each block of rows alone is set aside (and its degrees of freedom:
         the eigenvalues of I − H_BB above ``floor``)."""
         t = np.zeros(len(blocks))
         d = np.zeros(len(blocks), dtype=np.int64)
-        by_size: dict[int, list[int]] = {}
-        for k, blk in enumerate(blocks):
-            by_size.setdefault(len(blk), []).append(k)
-        for size, members in by_size.items():
-            if size == 0:
-                continue
-            pos = self.position[np.stack([blocks[k] for k in members])]
-            t[members], d[members] = self._drop(pos, floor)
+        for _, members, rows in blocks_by_size(blocks):
+            t[members], d[members] = self._drop(self.position[rows], floor)
         return t, d
 
     def _drop(self, pos: np.ndarray, floor: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:

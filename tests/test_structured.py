@@ -413,6 +413,14 @@ def test_the_verdicts_linear_algebra_from_the_blocks_equals_the_dense_one():
     blocks = [np.arange(s.start, s.stop) for s in problem.measurement_rows[:40]]
     np.testing.assert_allclose(ours.deletions(blocks)[0], dense.deletions(blocks)[0], rtol=1e-9)
     np.testing.assert_array_equal(ours.deletions(blocks)[1], dense.deletions(blocks)[1])
+    # the same blocks as (start, size) arrays (what the fit verdict passes), in a shuffled order
+    order = np.random.default_rng(0).permutation(40)
+    spans = problem.row_blocks.take(order)
+    for lin in (dense, ours):
+        np.testing.assert_allclose(lin.deletions(spans)[0], lin.deletions(blocks)[0][order], rtol=1e-12)
+        np.testing.assert_array_equal(lin.deletions(spans)[1], lin.deletions(blocks)[1][order])
+    as_lists = [b.tolist() for b in problem.row_blocks]
+    assert [np.arange(s.start, s.stop).tolist() for s in problem.measurement_rows] == as_lists
 
 
 @pytest.mark.slow
