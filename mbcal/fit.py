@@ -173,6 +173,7 @@ __all__ = [
     "DEFAULT_MAX_CONDITION",
     "DEFAULT_THRESHOLD",
     "DEFAULT_WEAK_FRACTION",
+    "TOO_SMALL_REDUCED_CHI2",
     "FitConfig",
     "FitVerdict",
     "Suspect",
@@ -223,6 +224,11 @@ HELD_Z = 3.090232306167813
 would put it beyond by more than this many of its σ (the normal's one-sided point at the default
 threshold, 0.001): nearer, the limit and the data agree within the noise — a gap whose true value
 is 0 lands on its limit [0, ∞) half the time."""
+
+TOO_SMALL_REDUCED_CHI2 = 0.1
+"""Residuals far below the stated σ (:attr:`FitVerdict.sigma_too_large`): S / dof below this (the
+scatter under ⅓ of σ) and the χ² lower tail P(χ²_dof ≤ S) below the verdict's threshold.  The
+range fit's test (:mod:`mbcal.range.fit`), where it fails the fit; here it is a note."""
 
 AMBIGUOUS_MARGIN = 3.841
 """Restarts that converged with S at most this much above the best one (χ²'s 95 % point for one
@@ -367,6 +373,13 @@ class FitVerdict:
     """Unknowns held at a hard limit the data push past significantly (the fit without the limit
     beyond it by more than :data:`HELD_Z` σ; σ 0 is the limit's, not a measurement of it): not
     trustworthy, ``--accept-poor-fit`` accepts it.  Nearer the limit: a note."""
+    sigma_too_large: bool = False
+    """The residuals are far below the stated σ (S / dof < :data:`TOO_SMALL_REDUCED_CHI2` and
+    P(χ²_dof ≤ S) < the threshold): σ stated too large (a value in mm read as m, a detector's
+    default) — the estimates' σ are then too large, and a model error within σ passes the χ² test.
+    A note beside the verdict (simulated data without noise gives it too), not a reason for exit 1."""
+    chi2_scaled: bool = False
+    """The covariance was scaled by the reduced χ² (``scale_covariance``)."""
     systematic: tuple[Suspect, ...] = ()
     """Cameras whose image points' residuals are smooth across the image, or sets of 3-D points
     whose residuals are smooth in space (neighbouring points off alike): a model error the χ² test
@@ -493,6 +506,19 @@ class FitVerdict:
                 f"  ill-conditioned: condition number {self.condition:.3g} above {self.max_condition:.3g} "
                 "(the estimate is numerically fragile)"
             )
+        if self.sigma_too_large:
+            reduced = self.chi2 / self.dof if self.chi2 is not None and self.dof else float("nan")
+            effect = (
+                "the estimates' σ are scaled by the residuals (scale_covariance)"
+                if self.chi2_scaled
+                else f"the estimates' σ above are then ~{1 / math.sqrt(max(reduced, 1e-300)):.3g}× too large "
+                "(--scale-covariance scales them by the residuals)"
+            )
+            out.append(
+                f"  residuals far below σ: reduced χ² = {reduced:.3g} (< {TOO_SMALL_REDUCED_CHI2:g}, and "
+                f"P(χ² ≤ S) < {self.threshold:g}): σ stated too large? {effect}; a model error within σ passes the "
+                "χ² test (data simulated without noise give this too)"
+            )
         out.extend(f"  {note}" for note in self.notes)
         out.append(f"verdict: {self.verdict()}")
         return out
@@ -548,6 +574,8 @@ class FitVerdict:
             "ambiguous": [s.to_json() for s in self.ambiguous],
             "untested": list(self.untested),
             "held": list(self.held),
+            "sigma_too_large": self.sigma_too_large,
+            "notes": list(self.notes),
             "recommend_robust": self.recommend_robust,
             "weak": [w.to_json() for w in self.weak],
             "weak_fraction": self.weak_fraction,
@@ -1121,6 +1149,8 @@ def assess_fit(
     if dof == 0:
         return FitVerdict(S, 0, None, consistent=True, **common)  # type: ignore[arg-type]
     p = float(stats.chi2.sf(S, dof))
+    common["sigma_too_large"] = bool(S / dof < TOO_SMALL_REDUCED_CHI2 and 1.0 - chi2_sf(S, dof) < alpha)
+    common["chi2_scaled"] = obs.chi2_scale != 1.0
     robust = str(loss) != "linear"
     if p >= alpha and not robust:  # consistent: nothing to look for (and nothing below computed, issue 16)
         return FitVerdict(S, dof, p, consistent=True, **common)  # type: ignore[arg-type]

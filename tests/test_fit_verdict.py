@@ -108,6 +108,27 @@ def test_a_clean_fit_exits_0(misclicked, capsys):
     assert fit["consistent"] and fit["well_determined"] and fit["suspects"] == [] and report["ok"]
     assert fit["p_value"] >= DEFAULT_THRESHOLD
     assert "verdict: consistent and well determined" in text
+    assert fit["sigma_too_large"] is False and "far below σ" not in text
+
+
+def test_residuals_far_below_a_sigma_stated_too_large_are_a_note(misclicked, tmp_path, capsys):
+    """The same clicks with σ stated 5× the noise: the χ² test passes, as it should, and the
+    report says the residuals are far below σ and the estimates' σ about 5× too large (a note:
+    the exit status and the verdict stand)."""
+    folder, _ = misclicked
+    lines = (folder / "clean.csv").read_text().splitlines()
+    at = lines[0].split(",").index("sigma")
+    rows = [row.split(",") for row in lines[1:]]
+    for row in rows:
+        row[at] = repr(5.0 * float(row[at]))
+    (tmp_path / "loose.csv").write_text("\n".join([lines[0], *(",".join(r) for r in rows)]) + "\n")
+    status, report, text = solve(ROOM, tmp_path / "loose.csv", "--estimate", "room.*", "--restarts", "8", capsys=capsys)
+    fit = report["fit"]
+    assert status == 0 and fit["consistent"] and fit["sigma_too_large"] is True, text
+    assert fit["chi2"] / fit["dof"] < 0.1 and "verdict: consistent and well determined" in text
+    shown = float(text.split("the estimates' σ above are then ~")[1].split("×")[0])
+    assert shown == pytest.approx(math.sqrt(fit["dof"] / fit["chi2"]), rel=1e-2) and 3 < shown < 8
+    assert "residuals far below σ: reduced χ²" in text
 
 
 @pytest.mark.slow

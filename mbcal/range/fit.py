@@ -54,7 +54,7 @@ import numpy as np
 from mbcal._jax import jax, jnp, to_device
 from mbcal.cache import enable_compilation_cache
 from mbcal.errors import SolverError
-from mbcal.fit import DEFAULT_THRESHOLD, chi2_sf
+from mbcal.fit import DEFAULT_THRESHOLD, TOO_SMALL_REDUCED_CHI2, chi2_sf
 from mbcal.geometry.raycast import distance_to_shapes, surface_distance
 from mbcal.language.model import Model
 from mbcal.measurements.sets import MeasurementSet
@@ -82,9 +82,9 @@ __all__ = [
 
 BUCKET = 4096
 
-TOO_SMALL_REDUCED_CHI2 = 0.1
-"""A fit whose inliers' reduced χ² is below this (and improbably so for its dof) has σ stated too
-large: not trustworthy (:attr:`ScanFit.sigma_too_large` gives the reasons for 0.1)."""
+# TOO_SMALL_REDUCED_CHI2 (mbcal.fit's): a scan fit whose inliers' reduced χ² is below it (and
+# improbably so for its dof) has σ stated too large: not trustworthy here
+# (:attr:`ScanFit.sigma_too_large` gives the reasons for 0.1).
 
 
 @dataclass(frozen=True)
