@@ -753,7 +753,10 @@ def simulate(
         True values (SI) of any parameters, ``name`` or ``name@config``; the rest take the
         plan's known values or the model's nominal values.
     noise : float
-        Multiplier of each measurement's covariance: 0 gives exact values, 1 the plan's σ.
+        Multiplier of each measurement's σ: 0 gives exact values, 1 the plan's σ, 3 three times
+        it (the covariance times 9).  Before 2026-11-25 it multiplied the covariance (σ × √noise),
+        while the command line's ``--noise`` and this function's own error message called it a
+        multiplier of σ; 0 and 1 give the same values as then.
     seed : int
         Seed of the noise (reproducible).
     drop_invisible : bool
@@ -801,7 +804,7 @@ def simulate(
                 values[i] = np.full(s, g.model.implicit_value)
                 continue
             m = plan.measurements[i]
-            e = rng.multivariate_normal(np.zeros(s), m.cov) * np.sqrt(noise) if noise > 0 else np.zeros(s)
+            e = rng.multivariate_normal(np.zeros(s), m.cov) * noise if noise > 0 else np.zeros(s)
             values[i] = h[rows] + e
     if not visible.all():
         plan = plan.subset(visible)

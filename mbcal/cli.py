@@ -1172,7 +1172,7 @@ def _register_commands(sub) -> None:
         """
         Fill a measurement plan (a measurement file without values: which kinds, sensors, points and
         configurations, with their σ) with values predicted from the model at the true values given
-        with --set, plus Gaussian noise of each measurement's σ times --noise.
+        with --set, plus Gaussian noise of each measurement's σ times --noise (2: twice the σ).
         """,
         """
         mbcal simulate models/teleexistence.mdl measurements/room_plan.csv \\

@@ -216,6 +216,17 @@ def test_numpy_and_jax_scalars_are_numbers_where_numbers_are_checked(room):
     Scan(np.zeros((3, 3)), sigma=np.float32(1e-3))
 
 
+def test_simulate_noise_multiplies_each_sigma(room):
+    """``noise=3`` gives three times the σ (the CLI's ``--noise`` is "in units of each σ"); it
+    multiplied the covariance before, which gave √3 of it."""
+    plan = mbcal.read_measurements(MEASUREMENTS / "room_plan.csv", room)
+    exact = np.array([m.value for m in mbcal.simulate(room, plan, {}, noise=0)])
+    one = np.array([m.value for m in mbcal.simulate(room, plan, {}, noise=1.0, seed=4)]) - exact
+    three = np.array([m.value for m in mbcal.simulate(room, plan, {}, noise=3.0, seed=4)]) - exact
+    np.testing.assert_allclose(three, 3.0 * one, rtol=1e-9, atol=1e-9)
+    assert 0.5 < np.std(one) < 2.0  # the plan's σ is 1 px
+
+
 def test_a_kind_whose_value_is_fixed_refuses_a_value_and_bounds_are_a_pair(tmp_path):
     """A point_to_surface record's 'value' or 'distance' was ignored in silence (S the same for
     0.05, 99 or nothing); bounds=([0, 0],) was an IndexError."""

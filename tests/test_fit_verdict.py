@@ -269,7 +269,7 @@ def test_a_box_smaller_than_the_real_one_is_named_as_a_structural_error(boxes, t
 
 def test_sigma_set_too_small_is_named_with_its_factor(boxes):
     model, plan = boxes
-    data = mbcal.simulate(model, plan, BOX_TRUTH, seed=5, noise=9.0)  # residuals 3 × the stated σ
+    data = mbcal.simulate(model, plan, BOX_TRUTH, seed=5, noise=3.0)  # residuals 3 × the stated σ
     result = mbcal.calibrate(model, data, ["room.*"], restarts=2, points=[])
     (suspect,) = result.verdict.suspects
     assert suspect.kind == "sigma" and 2.5 < suspect.factor < 3.5, suspect
