@@ -370,6 +370,20 @@ def _solver_config(args):
     )
 
 
+def _check_loss_scale(args: argparse.Namespace, scans: bool) -> None:
+    """--loss-scale scales a robust loss only: with the linear one (the default without scans) it
+    was ignored in silence, and a plain least-squares fit looked like a robust one."""
+    if args.loss_scale is None:
+        return
+    loss = args.loss or ("cauchy" if scans else "linear")
+    if loss == "linear":
+        given = "--loss linear" if args.loss else "no --loss (least squares)"
+        raise MbcalError(
+            f"--loss-scale is the scale of a robust loss, but {given} is given: "
+            "give --loss huber or --loss cauchy with it, or leave --loss-scale out"
+        )
+
+
 def _structure_option(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--structure",
@@ -565,6 +579,7 @@ def cmd_solve(args: argparse.Namespace) -> int:
     _distinct(files + scans)
     check_size(args.restarts)  # before reading anything
     _check_sigmas(args)
+    _check_loss_scale(args, bool(scans))
     fit = _fit_config(args)
     _check_outputs(args, inputs)
     progress = Progress(not args.quiet)
@@ -665,6 +680,20 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 # ---- observe ------------------------------------------------------------------------------------------
 
 
+def _at_or_set(model, at: dict[str, float], known: dict[str, float]) -> None:
+    """observe: a value given by --at and by --set for the same parameter (--set lever.angle=60deg
+    --at lever.angle=5deg, or --set 'lever.*' beside it) is refused: --at won in silence."""
+    for name in at:
+        base, _, config = name.partition("@")
+        for key in known:
+            pattern, _, other = key.partition("@")
+            if base in model.match_params(pattern) and (not config or not other or config == other):
+                raise MbcalError(
+                    f"--at {name} and --set {key} both give a value of {base}: give one, --at for an "
+                    "unknown that --estimate names (the value to analyse at), --set for a known value"
+                )
+
+
 def cmd_observe(args: argparse.Namespace) -> int:
     from mbcal.api import observe  # lazy: keeps JAX out of 'mbcal check'
 
@@ -672,6 +701,7 @@ def cmd_observe(args: argparse.Namespace) -> int:
     inputs = [args.model, args.plan]
     at = parse_assignments(args.at or [], model, "--at")
     known = _check_values(model, parse_assignments(args.set or [], model))
+    _at_or_set(model, at, known)
     analysis = observe(
         model,
         plan,
@@ -1140,7 +1170,10 @@ def _register_commands(sub) -> None:
     p.add_argument("--seed", type=_seed, default=0, metavar="S", help="seed of the starting points (default 0)")
     p.add_argument("--loss", choices=["linear", "huber", "cauchy"], help="robust loss (default: linear)")
     p.add_argument(
-        "--loss-scale", type=float, metavar="C", help="robust loss scale in σ (default 1.345 Huber, 2.385 Cauchy)"
+        "--loss-scale",
+        type=float,
+        metavar="C",
+        help="robust loss scale in σ (default 1.345 Huber, 2.385 Cauchy); needs a robust --loss",
     )
     p.add_argument("--max-iterations", type=int, default=100, metavar="N", help="iterations per restart")
     _structure_option(p)
@@ -1212,7 +1245,12 @@ def _register_commands(sub) -> None:
     p.add_argument("model", metavar="MODEL")
     p.add_argument("plan", metavar="PLAN")
     _add_solver_options(p)
-    p.add_argument("--at", action="append", metavar="NAME=VALUE", help="analyse at this value instead of nominal")
+    p.add_argument(
+        "--at",
+        action="append",
+        metavar="NAME=VALUE",
+        help="analyse at this value of an estimated unknown instead of nominal (not with --set for it too)",
+    )
     _verdict_options(p, threshold=False)
     _json_option(p, "the analysis as JSON")
     _quiet_option(p)

@@ -482,6 +482,27 @@ def test_a_value_given_twice_and_images_without_overlays_are_refused(clicks, cap
     assert "--set lever.length is given twice" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("loss", [[], ["--loss", "linear"]])
+def test_a_loss_scale_without_a_robust_loss_is_refused(clicks, capsys, loss):
+    """--loss-scale 3 without --loss (or with the linear one) was ignored in silence: a plain
+    least-squares fit, exit status 0, that the user took for a robust one."""
+    args = ["solve", LEVER, str(clicks), "--estimate", "lever.angle", "-q", *loss, "--loss-scale", "3"]
+    assert cli.main(args) == 2
+    err = capsys.readouterr().err
+    assert "--loss-scale is the scale of a robust loss" in err
+    assert "give --loss huber or --loss cauchy with it" in err
+
+
+@pytest.mark.parametrize("set_", ["lever.angle=60deg", "lever.an*=60deg"])
+def test_observe_refuses_at_and_set_for_the_same_parameter(capsys, set_):
+    """observe --at lever.angle=5deg --set lever.angle=60deg analysed at 5° in silence."""
+    args = ["observe", LEVER, LEVER_PLAN, "--estimate", "lever.angle", "-q", "--at", "lever.angle=5deg"]
+    assert cli.main([*args, "--set", set_]) == 2
+    err = capsys.readouterr().err
+    assert f"--at lever.angle and --set {set_.split('=')[0]} both give a value of lever.angle: give one" in err
+    assert cli.main([*args, "--set", "lever.length=30cm"]) != 2  # another parameter: no conflict
+
+
 def test_a_plot_named_other_than_png_is_refused_before_the_solve(clicks, tmp_path, capsys):
     """--plot p.jpg wrote PNG data into a .jpg file (render refuses such a name)."""
     target = tmp_path / "p.jpg"
