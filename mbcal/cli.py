@@ -1550,7 +1550,8 @@ def _register_commands(sub) -> None:
     p.add_argument(
         "--once",
         action="store_true",
-        help="process the files there now (waiting for any still being written) and exit (1 if one was rejected)",
+        help="process the files there now (waiting for any still being written) and exit (1 if one was "
+        "rejected; a folder without scans is said, exit 0)",
     )
     p.add_argument(
         "--json",

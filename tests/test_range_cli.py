@@ -268,6 +268,27 @@ def test_process_noise_patterns_stand_for_the_estimated_unknowns_only(tmp_path, 
     assert "'deg' is not a unit of room.x" in capsys.readouterr().err
 
 
+def test_watch_once_says_when_the_folder_holds_no_scan(tmp_path, capsys):
+    """watch --once on an empty folder (or one of scans of a suffix mbcal does not read) printed
+    nothing and exited 0, as a run that took every scan: it says there is no scan, and which files
+    are scans.  The exit status stays 0, nothing new (docs/range.md)."""
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    base = ["watch", ROOM, "--scans", str(scans), "--estimate", "room.*", "--once"]
+    assert main([*base, "--out", str(tmp_path / "a")]) == 0
+    out = capsys.readouterr().out
+    assert f"{scans}: no scan found (scans are .ply, .obj, .pcd" in out and ".tiff files)" in out
+    assert "not looked at" not in out
+    (scans / "room.las").write_bytes(b"LASF")
+    (scans / ".hidden.ply").write_text("")
+    assert main([*base, "--out", str(tmp_path / "b"), "--json"]) == 0
+    captured = capsys.readouterr()
+    assert captured.out == ""  # the JSON lines' stream holds updates only
+    assert f"{scans}: no scan found" in captured.err and "; 1 other file not looked at" in captured.err
+    assert main([*base, "--out", str(tmp_path / "c"), "--quiet"]) == 0
+    assert capsys.readouterr() == ("", "")
+
+
 def test_watch_skips_files_that_cannot_be_scans_with_a_note(tmp_path, capsys):
     """A README.txt, a log.csv of words and an 8-bit RGB photo.png beside the scans were rejected
     updates, and --once exited 1: they are skipped with a note (no update); a broken file of a
@@ -285,7 +306,7 @@ def test_watch_skips_files_that_cannot_be_scans_with_a_note(tmp_path, capsys):
     for name in ("README.txt", "log.csv", "photo.png"):
         assert f"{name}: skipped, not a scan" in out
     assert "update" not in out and not (tmp_path / "a" / "history.jsonl").exists()
-    assert "8-bit image (mode RGB)" in out
+    assert "8-bit image (mode RGB)" in out and "no scan found" not in out
     (scans / "broken.png").write_bytes(b"partial")
     assert main([*base, "--out", str(tmp_path / "b")]) == 1
     out = capsys.readouterr().out

@@ -419,7 +419,8 @@ class ModelManager:
 
         A file of a scan's suffix that cannot be a scan by its kind (:func:`not_a_scan`: an 8-bit
         photo, a README or log as text) is skipped: no update, ``note`` gets one line for it (again
-        only when it changes); a broken file of a scan's kind is a rejected update.
+        only when it changes); a broken file of a scan's kind is a rejected update.  With ``once``,
+        a folder without a file of a scan's suffix gets one ``note`` saying so.
         """
         src = Path(folder)
         if not src.is_dir():
@@ -429,10 +430,15 @@ class ModelManager:
         sizes: dict[Path, tuple[int, float]] = {}
         while True:
             writing = False  # a file seen still being written: --once waits for it
+            scans = others = 0  # files of a scan's suffix, and the other files (not looked at)
             for p in sorted(src.iterdir()):
+                if p.suffix.lower() not in SCAN_SUFFIXES or p.name.startswith("."):
+                    others += not p.name.startswith(".") and not p.is_dir()
+                    continue
+                scans += 1
                 taken = done.get(str(p.resolve()))
-                if p.suffix.lower() not in SCAN_SUFFIXES or p.name.startswith(".") or taken == []:
-                    continue  # (taken == []: taken before stamps were recorded, never again)
+                if taken == []:
+                    continue  # taken before stamps were recorded, never again
                 try:
                     info = p.stat()
                 except OSError:  # a link to nothing (a rejected update), or a file removed meanwhile
@@ -478,5 +484,8 @@ class ModelManager:
                 if max_updates is not None and count >= max_updates:
                     return count
             if once and not writing:
+                if not scans and note is not None:  # a wrong folder, or scans of a suffix not read: not silence
+                    beside = f"; {others} other file{'s' * (others != 1)} not looked at" if others else ""
+                    note(f"{src}: no scan found (scans are {', '.join(SCAN_SUFFIXES)} files){beside}")
                 return count
             time.sleep(min(poll, settle) if once else poll)
