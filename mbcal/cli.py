@@ -944,7 +944,9 @@ def cmd_studio(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     if engine.error:
-        print(f"mbcal studio: the model has an error (shown in the page too):\n{engine.error['text']}", file=sys.stderr)
+        # the input to fix by name: a broken measurement file is not "the model has an error"
+        what = engine.error["what"]
+        print(f"mbcal studio: {what} has an error (shown in the page too):\n{engine.error['text']}", file=sys.stderr)
     end_start_up()  # a server waits: collections resume now, not at its first solve (mbcal._collector)
     return serve_forever(engine, args.host, args.port, open_browser=not args.no_browser)
 

@@ -445,6 +445,35 @@ def test_a_camera_the_model_lacks_is_the_command_lines_error_at_start_and_the_mo
     assert engine.reload()["ok"]
 
 
+def test_a_broken_measurement_file_is_named_at_start_and_its_clicks_come_at_reload(small, capsys, monkeypatch):
+    """`mbcal studio MODEL bad.csv` said "the model has an error" for the measurement file's, and
+    the file's clicks never came: the empty session saved at start was restored ever after.  It
+    starts as with a broken model (the error shown in the page), naming the file to fix; the
+    file's clicks are taken at the Reload that reads it."""
+    from mbcal import cli
+    from mbcal.studio import server as studio_server
+
+    model, photo, out = small
+    bad = model.parent / "clicks.csv"
+    bad.write_text("x\n", encoding="utf-8")
+    served: list[Engine] = []
+    monkeypatch.setattr(studio_server, "serve_forever", lambda engine, *a, **k: served.append(engine) or 0)
+    assert cli.main(["studio", str(model), str(bad), "--image", f"cam={photo}", "--no-browser", "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert f"mbcal studio: the measurement file {bad} has an error (shown in the page too):\n{bad}:1:1:" in err
+    assert "the model has an error" not in err
+    (engine,) = served
+    assert engine.state()["error"]["what"] == f"the measurement file {bad}"
+    with pytest.raises(MbcalError, match=f"the measurement file {bad} did not load \\({bad}:1:1\\)"):
+        engine.require_model()
+    assert not (out / SESSION_FILE).exists()  # a restart reads the file's clicks, once it is fixed
+    bad.write_text("id,kind,config,camera,point,u,v,sigma\nk1,image_point,default,cam,block.a,100,120,1\n")
+    r = engine.reload()
+    assert r["ok"] and r["error"] is None
+    assert [(c.id, c.point) for c in engine.session.clicks] == [("k1", "block.a")]
+    assert [c["point"] for c in json.loads((out / SESSION_FILE).read_text())["clicks"]] == ["block.a"]
+
+
 def test_the_page_ships_inside_the_package():
     from importlib import resources
 

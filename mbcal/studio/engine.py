@@ -55,10 +55,18 @@ _RENDER_LOCK = threading.Lock()
 IMAGE_TYPES = {".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg"}
 
 
-def error_json(err: MbcalError) -> dict[str, Any]:
-    """An mbcal error for the page: ``file:line:col: message``, the source line and the column."""
+def error_json(err: MbcalError, what: str = "the model") -> dict[str, Any]:
+    """An mbcal error for the page: ``file:line:col: message``, the source line and the column;
+    ``what`` is the input to fix ("the model", "the measurement file bad.csv")."""
     text = err.render()
-    out: dict[str, Any] = {"message": str(err), "text": text, "location": None, "source": None, "column": None}
+    out: dict[str, Any] = {
+        "message": str(err),
+        "text": text,
+        "location": None,
+        "source": None,
+        "column": None,
+        "what": what,
+    }
     if err.span is not None:
         out["location"] = str(err.span)
         out["column"] = err.span.column
@@ -226,6 +234,9 @@ class Engine:
                 hint=f"give another --out for {self.model_path.name}, or move that session away",
             )
         self.load(start=True)
+        # A start with a broken model or measurement file: the files' clicks are taken at the first
+        # Reload that loads them (they were lost: the empty session saved meant 'restored' after).
+        self._inputs_pending = restored is None and self.loaded is None
         if restored is not None:
             self.session = restored
             self._keep_valid_clicks("restored from " + str(self.session_path))
@@ -235,7 +246,8 @@ class Engine:
         self._next_id = self._max_id() + 1
         with all_or_nothing():  # the folders made are removed again if the session cannot be written
             make_output_folder(self.out)
-            self.save_session()
+            if not self._inputs_pending:  # else a restart would restore no clicks, not read the files'
+                self.save_session()
         self._start_warm_up()
 
     # ---- files ---------------------------------------------------------------------------------------
@@ -265,10 +277,21 @@ class Engine:
         with self.lock:
             try:
                 model = load_model(self.model_path)
-                sets = [read_measurements(p, model) for p in self.measurement_paths]
-                inputs = merge_measurements(sets, model) if sets else None
             except MbcalError as err:
                 self.error = error_json(err)
+                return False
+            # a measurement file's error is that file's to fix, not the model's
+            sets = []
+            for path in self.measurement_paths:
+                try:
+                    sets.append(read_measurements(path, model))
+                except MbcalError as err:
+                    self.error = error_json(err, f"the measurement file {path}")
+                    return False
+            try:
+                inputs = merge_measurements(sets, model) if sets else None
+            except MbcalError as err:
+                self.error = error_json(err, "the measurement files")
                 return False
             try:
                 self._check_photo_cameras(model)
@@ -311,6 +334,17 @@ class Engine:
     def reload(self) -> dict[str, Any]:
         """Reload after the model file changed: clicks whose names still exist are kept."""
         ok = self.load()
+        if ok and self._inputs_pending:
+            assert self.loaded is not None
+            try:
+                if self.loaded.inputs is not None:
+                    self._clicks_from_inputs()
+            except MbcalError as err:  # a correlated σ (refused at start): the file's to fix
+                self.session.clicks = []
+                self.error, self.loaded = error_json(err, "the measurement files"), None
+                return {"ok": False, "error": self.error, "notes": self.notes}
+            self._inputs_pending = False
+            self._next_id = self._max_id() + 1
         if ok:
             self._keep_valid_clicks("kept after reloading")
             self._start_warm_up()
@@ -373,8 +407,9 @@ class Engine:
 
     def require_model(self) -> _Loaded:
         if self.loaded is None or self.error is not None:
+            what = self.error["what"] if self.error else "the model"
             where = self.error["location"] if self.error else str(self.model_path)
-            raise MbcalError(f"the model did not load ({where}); fix it and press Reload")
+            raise MbcalError(f"{what} did not load ({where}); fix it and press Reload")
         return self.loaded
 
     def configurations(self) -> list[str]:

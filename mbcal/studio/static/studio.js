@@ -679,7 +679,8 @@ async function doReload() {
   const r = await api("POST", "/api/reload", {});
   S.report = null; S.suggested = [];
   await loadState();
-  status(r.ok ? "model reloaded" : "the model has an error (see above); the server keeps running");
+  const what = (r.error && r.error.what) || "the model";
+  status(r.ok ? "model reloaded" : `${what} has an error (see above); the server keeps running`);
 }
 
 // ---- wiring ----------------------------------------------------------------------------------------
