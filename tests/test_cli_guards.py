@@ -171,6 +171,18 @@ def test_an_unknown_camera_lists_the_models_cameras(tmp_path):
     assert result.returncode == 2 and "no camera named 'nope' (the model's cameras: eye)" in result.stderr
 
 
+def test_render_refuses_a_camera_larger_than_it_draws_where_it_is_declared(tmp_path):
+    """A 16385 px wide camera passed check and ended render in an OpenGL traceback, exit status 1."""
+    model = tmp_path / "wide.mdl"
+    model.write_text("camera c(width = 16385, height = 100, f = 600)\nshape box(1 m, 1 m, 1 m) at (0, 0, 5 m)\n")
+    for command in (("check", model), ("render", model, "-o", tmp_path / "x.png")):
+        result = run(*command)
+        assert result.returncode == 2, result.stderr
+        assert "wide.mdl:1:18: the camera's width must be a whole number of pixels in 1..16384" in result.stderr
+        assert "Traceback" not in result.stderr
+    assert not (tmp_path / "x.png").exists()
+
+
 def test_the_report_says_converged_once(clicks):
     result = run("solve", LEVER, clicks, "--estimate", "lever.angle")
     assert result.returncode == 0, result.stderr

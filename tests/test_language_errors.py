@@ -141,6 +141,16 @@ GOLDEN = {
         errors.ArgumentError,
         "model.mdl:1:1: camera 'c' needs 'width' (image size in pixels)",
     ),
+    "camera_wider_than_a_renderer_draws": (
+        "camera c(width = 16385, height = 100, f = 600)\n",
+        errors.DimensionError,
+        "model.mdl:1:18: the camera's width must be a whole number of pixels in 1..16384, got 16385",
+    ),
+    "camera_of_infinite_height": (
+        "camera c(width = 640, height = 1 / 0, f = 600)\n",
+        errors.DimensionError,
+        "model.mdl:1:32: the camera's height must be a whole number of pixels in 1..16384, got inf",
+    ),
     "grid_of_rays_of_180_deg": (
         "range lidar(fov = (180 deg, 30 deg), rays = (16, 4))\n",
         errors.DimensionError,

@@ -103,3 +103,26 @@ def test_a_model_without_shapes_renders_its_points_on_the_background():
     view = render_view(modeler(model, model.nominal), "eye", points=True, point_radius=0.05)
     assert view.color.shape == (48, 64, 3)
     assert np.any(view.shape_index == 0) and (view.shape_index[24, 32] == 0)  # the point, at the centre
+
+
+def test_a_renderer_that_fails_is_a_render_error_naming_the_camera(monkeypatch):
+    """A driver's refusal (a camera larger than OpenGL's renderbuffers) ended mbcal render in a
+    traceback and exit status 1, the status of an untrustworthy fit."""
+    import pyrender
+
+    from mbcal.errors import RenderError
+
+    model = load_model_text("camera eye(width = 64, height = 48, f = 50)\nshape box(1 m, 1 m, 1 m) at (0, 0, 3 m)\n")
+    scene = modeler(model, model.nominal)
+
+    def refuse(self, *args, **kwargs):
+        raise RuntimeError("GLError(\n\terr = 1281,\n\tdescription = b'invalid value'\n)")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(pyrender.OffscreenRenderer, "render", refuse)
+        with pytest.raises(RenderError) as info:
+            render_view(scene, "eye")
+    assert str(info.value).startswith(
+        "cannot render camera 'eye' (64×48 px): RuntimeError: GLError( err = 1281, description = b'invalid value' )"
+    )
+    assert render_view(scene, "eye").color.shape == (48, 64, 3)  # the failed context was closed

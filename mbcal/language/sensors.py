@@ -23,6 +23,8 @@ from mbcal.units import ANGLE, DIMENSIONLESS, LENGTH
 
 __all__ = ["camera", "range_sensor"]
 
+MAX_PIXELS = 16384  # the largest image side, of cameras and depth cameras
+
 CAMERA_SETTINGS = ("width", "height", "f", "fx", "fy", "cx", "cy", "skew", "k1", "k2", "p1", "p2", "k3")
 
 
@@ -58,9 +60,16 @@ def camera(c: Compiler, stmt: ast.Camera, scope: Scope, frame: int, name: str) -
     size = []
     for key in ("width", "height"):
         node = c.arg(bound, key, scope, dim=DIMENSIONLESS, what=f"the camera's {key}")
-        if not isinstance(node, Const) or float(node.value) != round(float(node.value)) or node.value <= 0:
-            raise DimensionError(f"the camera's {key} must be a positive whole number of pixels", bound[key].span)
-        size.append(int(node.value))
+        # At most MAX_PIXELS a side, as a depth camera: OpenGL's renderbuffers (mbcal render, the
+        # overlays) go no larger, and a larger camera passed 'mbcal check' to fail in the renderer.
+        value = node.value if isinstance(node, Const) and node.kind == SCALAR else None
+        v = math.nan if value is None else float(value)
+        if not (1 <= v <= MAX_PIXELS and v == round(v)):
+            got = " (a constant)" if value is None else f", got {v:g}"
+            raise DimensionError(
+                f"the camera's {key} must be a whole number of pixels in 1..{MAX_PIXELS}{got}", bound[key].span
+            )
+        size.append(int(v))
     _check_focal_lengths(f"camera '{stmt.name}'", bound, stmt.span)
     if "f" in bound:
         fx = fy = c.arg(bound, "f", scope, dim=DIMENSIONLESS, what="the focal length f (pixels)")
@@ -228,9 +237,9 @@ def _depth_camera(c: Compiler, stmt: ast.RangeSensor, bound: dict, scope: Scope,
         if key not in bound:
             raise ArgumentError(f"depth camera '{stmt.name}' needs '{key}' (image size in pixels)", stmt.span)
         v = _constant(c, bound, key, scope, DIMENSIONLESS, f"the depth camera's {key}")
-        if v is None or v != round(v) or not 1 <= v <= 16384:
+        if v is None or v != round(v) or not 1 <= v <= MAX_PIXELS:
             raise DimensionError(
-                f"the depth camera's {key} must be a whole number of pixels in 1..16384", bound[key].span
+                f"the depth camera's {key} must be a whole number of pixels in 1..{MAX_PIXELS}", bound[key].span
             )
         size.append(int(v))
     if size[0] * size[1] > 4_000_000:

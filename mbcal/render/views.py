@@ -165,8 +165,19 @@ def render_view(
                 seg, z = renderer.render(pr_scene, flags=pyrender.RenderFlags.SEG, seg_node_map=seg_map)
             else:
                 seg, z = np.zeros((0, 0, 3), np.uint8), np.zeros((0, 0))
-        except BaseException:
+        except Exception as err:
             _RENDERER.close()  # a context in an unknown state: the next view opens a new one
+            # A driver's refusal (an image larger than its renderbuffers, out of memory) was a
+            # traceback, read by the command line as a fit verdict (status 1): a RenderError is
+            # bad input (status 2), naming the camera and its size.
+            detail = " ".join(f"{type(err).__name__}: {err}".split())
+            raise RenderError(
+                f"cannot render camera '{camera}' ({cam.width}×{cam.height} px): "
+                + (detail if len(detail) <= 300 else detail[:300] + " ..."),
+                hint="a smaller image, or another OpenGL driver (PYOPENGL_PLATFORM=osmesa), may render",
+            ) from err
+        except BaseException:
+            _RENDERER.close()
             raise
         if not _RENDERER.scopes:
             _RENDERER.close()
