@@ -289,6 +289,32 @@ def test_every_relative_file_name_is_rewritten_when_the_model_is_written_to_anot
         write_calibrated_model(model, {"b.x": 0.01}, tmp_path / "data" / "pts.txt")  # a file the model reads
 
 
+def test_a_model_the_estimate_makes_invalid_is_not_written(tmp_path):
+    """A search range that includes f < 0 let a fit find a mirror camera; the model written from
+    it ('param cam.f = -685.147') was refused by mbcal check: 'fx must be positive'."""
+    source = tmp_path / "cam.mdl"
+    source.write_text(
+        "param cam.f = 600 in [-1000, 1000]\nparam box.size = 1 m in [-1 m, 2 m]\n"
+        "param box.x = 0 m limits [-1 m, 1 m]\n"
+        "camera eye(width = 640, height = 480, f = cam.f)\nshape box(box.size, 1 m, 1 m) at (box.x, 0, 5 m)\n"
+    )
+    model = mbcal.load_model(source)
+    out = tmp_path / "cam_cal.mdl"
+    for values, message in (
+        ({"cam.f": -685.147, "box.x": 0.1}, "camera 'eye': fx must be positive, got -685.147 with the estimated "
+         "values (the estimate cam.f = -685.147)"),
+        ({"box.size": -0.5}, "must be positive, got -0.5 m with the estimated values (the estimate box.size = -0.5 m)"),
+        ({"box.x": 1.5}, "the estimate 1.5 m is outside the hard limits of box.x [-1, 1] m"),
+    ):  # fmt: skip
+        with pytest.raises(OutputError) as info:
+            write_calibrated_model(model, values, out)
+        assert str(info.value).startswith(f"{source}:") and f"not writing {out}: " in str(info.value)
+        assert message in str(info.value)
+        assert not out.exists()
+    write_calibrated_model(model, {"cam.f": 685.147, "box.size": 0.5}, out)
+    assert mbcal.load_model(out).param("cam.f").nominal == pytest.approx(685.147)
+
+
 def test_nothing_to_estimate_is_a_clear_error(room, room_data):
     with pytest.raises(SolverError, match="nothing to estimate"):
         mbcal.calibrate(room, room_data, [])

@@ -140,6 +140,30 @@ def test_joint_limits_the_wrong_way_round_are_an_error_at_the_lower_limit():
     assert (info.value.span.line, info.value.span.column) == (3, 32)
 
 
+def test_solve_refuses_to_write_a_model_its_estimate_makes_invalid(tmp_path):
+    """With f searched over [-1000, 1000] the fit chose the mirror camera, f = -685; --write-model
+    wrote 'param cam.f = -685.147...', a model 'mbcal check' refuses (fx must be positive)."""
+    model = tmp_path / "levf.mdl"
+    model.write_text(
+        (MODELS / "lever.mdl")
+        .read_text()
+        .replace("camera eye(width = 669, height = 453, f = 600)", "param cam.f = 600 in [-1000, 1000]\n"
+                 "camera eye(width = 669, height = 453, f = cam.f)")
+    )  # fmt: skip
+    clicks = tmp_path / "ok.csv"
+    clicks.write_text(
+        "id,kind,config,camera,point,u,v,sigma\n"
+        "hub,image_point,default,eye,lever.hub,334.3,226.8,1.0\ntip,image_point,default,eye,lever.tip,237.2,61.5,1.0\n"
+    )
+    out = tmp_path / "levf_cal.mdl"
+    result = run("solve", model, clicks, "--estimate", "cam.f", "lever.angle", "--restarts", "64",
+                 "--accept-poor-fit", "-q", "--write-model", out)  # fmt: skip
+    assert result.returncode == 2, result.stderr
+    assert f"not writing {out}: camera 'eye': fx must be positive, got -685.1" in result.stderr
+    assert "(the estimate cam.f = -685.1" in result.stderr and "Traceback" not in result.stderr
+    assert not out.exists()
+
+
 def test_a_model_written_from_an_untrustworthy_fit_says_so_in_its_header(tmp_path):
     # Clicks of a lever 10 cm longer than the model's: the fit cannot be consistent with 1 px.
     data = tmp_path / "long.csv"

@@ -21,9 +21,10 @@ from pathlib import Path
 
 import numpy as np
 
-from mbcal.errors import MbcalError, SourceSpan
+from mbcal.errors import MbcalError, MdlError, OutputError, SourceSpan
 from mbcal.export.urdf import write_urdf
 from mbcal.language import ast
+from mbcal.language.check import check_at_nominal
 from mbcal.language.model import Model
 from mbcal.language.parse import display_path, parse_text_cached
 from mbcal.language.urdf import urdf_to_mdl
@@ -100,6 +101,48 @@ def _relocate(text: str, source: Path, out: Path) -> list[tuple[int, int, str]]:
     return edits
 
 
+def _check_estimate(model: Model, values: Mapping[str, float], path) -> None:
+    """The values must make a model that mbcal reads: within each parameter's hard limits, and
+    sizes and focal lengths positive, camera settings, poses and points finite with them — the
+    loader's own checks (:func:`~mbcal.language.check.check_at_nominal`), which apply to the
+    nominal values that the written file declares.  A search range that includes f ≤ 0 let a fit
+    find a mirror camera (f < 0), and the model written from it was refused by ``mbcal check``.
+
+    Raises
+    ------
+    OutputError
+        At the model's statement that the values make invalid, naming the file not written.
+    """
+    estimates = {name: value for name, value in values.items() if "@" not in name}  # not model values
+    X = model.nominal.copy()
+    for name, value in estimates.items():
+        info = model.param(name)
+        outside = info.outside_limits(value)
+        if outside:
+            raise OutputError(f"not writing {path}: the estimate {outside}", info.span)
+        X[model.param_index(name)] = value
+    try:
+        check_at_nominal(model, X, where="with the estimated values")
+    except MdlError as err:
+        # The estimates that break it alone are named (the message names the model's setting).
+        culprits = []
+        for name, value in list(estimates.items())[:200]:  # an error's path only, bounded
+            alone = model.nominal.copy()
+            alone[model.param_index(name)] = value
+            try:
+                check_at_nominal(model, alone)
+            except MdlError:
+                info = model.param(name)
+                culprits.append(f"{name} = {info.display(value):.6g}{f' {info.unit}' if info.unit else ''}")
+        cause = f" (the estimate {', '.join(culprits)})" if culprits else ""
+        raise OutputError(
+            f"not writing {path}: {err.message}{cause}",
+            err.span,
+            hint="mbcal would refuse to read that model; limits [lo, hi] on a parameter keep its estimate valid "
+            "(a focal length: limits [1, 1e6])",
+        ) from None
+
+
 def write_calibrated_model(
     model: Model,
     values: Mapping[str, float],
@@ -130,7 +173,14 @@ def write_calibrated_model(
     at_bound : mapping, optional
         Unknowns held at a hard limit (name → ``lower`` or ``upper``): the limit, not the data,
         gave their value, and the header says so instead of their σ of 0.
+
+    Raises
+    ------
+    OutputError
+        When the values make a model mbcal would refuse to read (a focal length ≤ 0, a size ≤ 0,
+        a value outside its hard limits): nothing is written.
     """
+    _check_estimate(model, values, path)
     source = Path(model.path)
     if source.suffix.lower() == ".urdf":
         _write_from_urdf(model, values, source, Path(path), overwrite=overwrite)

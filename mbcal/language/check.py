@@ -80,7 +80,9 @@ def check_at_nominal(model: Model, X: np.ndarray | None = None, where: str = "at
         for key, node in zip(("fx", "fy"), cam.intrinsics[:2]):
             v = float(value(node))
             if not (math.isfinite(v) and v > 0):
-                raise DimensionError(f"camera '{cam.name}': {key} must be positive, got {v:g}", node.span or cam.span)
+                raise DimensionError(
+                    f"camera '{cam.name}': {key} must be positive, got {v:g} {where}", node.span or cam.span
+                )
         keys = ("cx", "cy", "skew", "k1", "k2", "p1", "p2", "k3")
         for key, node in zip(keys, (*cam.intrinsics[2:], *cam.distortion)):
             if not math.isfinite(float(value(node))):
