@@ -21,9 +21,10 @@ from typing import Any, Protocol
 import numpy as np
 
 from mbcal._jax import in_float64, jax, release_memory
-from mbcal.errors import SolverError
+from mbcal.errors import MdlError, SolverError
 from mbcal.errors import suggest as suggest_name
 from mbcal.fit import FitConfig, assess_fit, assess_plan, distinct_minima
+from mbcal.language.check import check_at_nominal
 from mbcal.language.model import Model
 from mbcal.measurements.registry import call_model, get_model
 from mbcal.measurements.sets import MeasurementSet, measurements_from_records
@@ -633,6 +634,23 @@ def _load_analysis_programs(problem: Problem, structure: Structure | None, x: np
     return thread
 
 
+def _estimate_breaks_model(problem: Problem, x: np.ndarray) -> str | None:
+    """Where the estimate breaks a rule of the model that the loader checks at the nominal values
+    (a focal length or a shape's size not positive: :func:`mbcal.language.check.check_at_nominal`,
+    signs only — the residuals were finite), in every configuration: ``file:line:col: message``,
+    else None."""
+    model = problem.model
+    if not (model.cameras or model.shapes) or problem.params.size == 0:
+        return None
+    rows = np.unique(problem.params.X(np.asarray(x, dtype=float)), axis=0)
+    for X in rows:
+        try:
+            check_at_nominal(model, X, where="at the estimate", finite=False)
+        except MdlError as err:
+            return f"{err.span}: {err.message}" if err.span is not None else err.message
+    return None
+
+
 def _result(
     problem: Problem,
     solved: Any,
@@ -659,6 +677,9 @@ def _result(
     if verdict is not None and not (solved.best >= 0 and solved.status_best.converged):
         # the verdict judges a minimum: without one it must not read "consistent and well determined"
         verdict = dataclasses.replace(verdict, not_converged=solved.status_best.label)
+    broken = _estimate_breaks_model(problem, x) if verdict is not None else None
+    if broken is not None:
+        verdict = dataclasses.replace(verdict, invalid_estimate=broken)
     return CalibrationResult(
         problem=problem,
         solver=solved,

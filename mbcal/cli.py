@@ -3,9 +3,9 @@
 Every command prints errors a user can cause as ``path:line:col: message`` with the source
 line and a caret, and exits with status 2 — never with a traceback.  Exit status 0 is
 success; 1 means the command ran but the result is not trustworthy (not observable, not
-converged, the fit inconsistent with the stated σ, systematic residuals, another solution as
-good, an unknown held at a hard limit, or weakly determined; --accept-poor-fit accepts all but
-the first two); 130 means interrupted.
+converged, an estimate that breaks the model, the fit inconsistent with the stated σ,
+systematic residuals, another solution as good, an unknown held at a hard limit, or weakly
+determined; --accept-poor-fit accepts all but the first three); 130 means interrupted.
 """
 
 from __future__ import annotations
@@ -1128,9 +1128,10 @@ def _register_commands(sub) -> None:
         error of the model), or σ set too small.  Weakly determined directions are named too.
 
         Exit status: 0 converged, observable, consistent and well determined; 1 not converged, not
-        observable, inconsistent, systematic residuals, another solution as good, an unknown held at
-        a hard limit, or weakly determined (--accept-poor-fit: 0 for all but the first two);
-        2 bad input (with file:line:col).
+        observable, an estimate that breaks the model (a focal length < 0), inconsistent,
+        systematic residuals, another solution as good, an unknown held at a hard limit, or weakly
+        determined (--accept-poor-fit: 0 for all but the first three); 2 bad input (with
+        file:line:col).
         """,
         """
         mbcal solve models/teleexistence.mdl room.csv --estimate 'room.*' \\

@@ -359,6 +359,11 @@ class FitVerdict:
     not_converged: str | None = None
     """Why the solve's best restart did not converge (its status: ``max_iterations``), else None:
     the verdict is then not trustworthy, and ``--accept-poor-fit`` does not accept it."""
+    invalid_estimate: str | None = None
+    """The estimate breaks a rule of the model (``file:line:col: message``: a focal length or a
+    shape's size not positive — a search range that includes them lets a fit find a mirror camera,
+    f < 0, that fits as well), else None: not trustworthy, and ``--accept-poor-fit`` does not
+    accept it (a model written from it would not load)."""
     ambiguous: tuple[Suspect, ...] = ()
     """Another solution the restarts found, as good as the estimate and far from it
     (:func:`distinct_minima`, kind ``ambiguous``): not trustworthy, ``--accept-poor-fit`` accepts it."""
@@ -401,6 +406,7 @@ class FitVerdict:
         undetermined or not converged)."""
         return (
             self.not_converged is None
+            and self.invalid_estimate is None
             and self.consistent
             and not self.systematic
             and not self.ambiguous
@@ -412,7 +418,9 @@ class FitVerdict:
     def ok(self) -> bool:
         """Trustworthy, or accepted — an unobservable problem is never ok (it has no estimate), nor
         one whose solve did not converge (it has no minimum)."""
-        return self.trustworthy or (self.accepted and self.determined and self.not_converged is None)
+        return self.trustworthy or (
+            self.accepted and self.determined and self.not_converged is None and self.invalid_estimate is None
+        )
 
     def _undetermined_text(self) -> str:
         if self.rank is None or self.unknowns is None:
@@ -468,6 +476,12 @@ class FitVerdict:
                     "  recommendation: the outliers explain it; solve with a robust loss (--loss huber or cauchy, "
                     "CalibrateOptions(config=SolverConfig(loss='huber'))) or remove them"
                 )
+        if self.invalid_estimate is not None:
+            out.append(
+                f"  the estimate breaks the model: {self.invalid_estimate} — a search range that allows it let the "
+                "fit find it (limits [lo, hi] on the parameter keep it valid: a focal length limits [1, 1e6]); a model "
+                "written from it would not load"
+            )
         for sy in self.systematic:
             out.append(f"  systematic residuals: {sy.description}")
         for other in self.ambiguous:
@@ -535,6 +549,8 @@ class FitVerdict:
         why = []
         if self.not_converged is not None:
             why.append(f"the solve did not converge ({self.not_converged})")
+        if self.invalid_estimate is not None:
+            why.append("the estimate breaks the model")
         if not self.determined:
             why.append(self._undetermined_text())
         if not self.consistent:
@@ -552,6 +568,8 @@ class FitVerdict:
             return text + " (exit status 1, even with --accept-poor-fit: add measurements or fix unknowns)"
         if self.not_converged is not None:  # no minimum to accept
             return text + " (exit status 1, even with --accept-poor-fit: more iterations or other starts)"
+        if self.invalid_estimate is not None:  # not a model at all
+            return text + " (exit status 1, even with --accept-poor-fit: limit the parameter to valid values)"
         if self.accepted:
             return text + "; accepted anyway (--accept-poor-fit)"
         return text + " (exit status 1; --accept-poor-fit accepts it)"
@@ -584,6 +602,7 @@ class FitVerdict:
             "well_determined": self.well_determined,
             "accepted": self.accepted,
             "not_converged": self.not_converged,
+            "invalid_estimate": self.invalid_estimate,
             "ok": self.ok,
             "verdict": self.verdict(),
         }

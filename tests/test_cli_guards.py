@@ -6,6 +6,7 @@ from an untrustworthy fit says so in its header."""
 from __future__ import annotations
 
 import errno
+import json
 import subprocess
 import sys
 
@@ -162,6 +163,38 @@ def test_solve_refuses_to_write_a_model_its_estimate_makes_invalid(tmp_path):
     assert f"not writing {out}: camera 'eye': fx must be positive, got -685.1" in result.stderr
     assert "(the estimate cam.f = -685.1" in result.stderr and "Traceback" not in result.stderr
     assert not out.exists()
+
+
+def test_an_estimate_that_breaks_the_model_is_not_trustworthy_even_accepted(tmp_path):
+    """The same mirror fit without --write-model: it exited 0 with --accept-poor-fit, reporting
+    f = -685 px as an estimate; now the verdict names the rule it breaks, where, and exit 1."""
+    model = tmp_path / "levf.mdl"
+    model.write_text(
+        (MODELS / "lever.mdl")
+        .read_text()
+        .replace("camera eye(width = 669, height = 453, f = 600)", "param cam.f = 600 in [-1000, 1000]\n"
+                 "camera eye(width = 669, height = 453, f = cam.f)")
+    )  # fmt: skip
+    clicks = tmp_path / "ok.csv"
+    clicks.write_text(
+        "id,kind,config,camera,point,u,v,sigma\n"
+        "hub,image_point,default,eye,lever.hub,334.3,226.8,1.0\ntip,image_point,default,eye,lever.tip,237.2,61.5,1.0\n"
+    )
+    result = run("solve", model, clicks, "--estimate", "cam.f", "lever.angle", "--restarts", "64",
+                 "--accept-poor-fit", "--json", "-")  # fmt: skip
+    assert result.returncode == 1, result.stderr
+    fit = json.loads(result.stdout)["fit"]
+    assert fit["ok"] is False and fit["accepted"] is True
+    assert fit["invalid_estimate"].startswith(f"{model}:") or fit["invalid_estimate"].startswith("levf.mdl:")
+    assert "camera 'eye': fx must be positive, got -685.1" in fit["invalid_estimate"]
+    assert "at the estimate" in fit["invalid_estimate"]
+    assert "NOT trustworthy: the estimate breaks the model" in fit["verdict"]
+    assert "even with --accept-poor-fit" in fit["verdict"]
+    assert "the estimate breaks the model: " in result.stderr
+    # the same search range with hard limits that keep f valid: the other solution, untouched
+    model.write_text(model.read_text().replace("in [-1000, 1000]", "in [300, 1000] limits [1, 1e6]"))
+    result = run("solve", model, clicks, "--estimate", "cam.f", "lever.angle", "--restarts", "64", "--json", "-")
+    assert json.loads(result.stdout)["fit"]["invalid_estimate"] is None
 
 
 def test_a_model_written_from_an_untrustworthy_fit_says_so_in_its_header(tmp_path):
