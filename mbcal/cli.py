@@ -641,9 +641,9 @@ def cmd_solve(args: argparse.Namespace) -> int:
     progress.done()
     if args.json:
         _write_json(result.to_json(), args.json, inputs)
+    _say(args, result.summary)  # before the model: a model refused (an estimate that breaks it) has its report
     if args.write_model:
         result.write_model(args.write_model)
-    _say(args, result.summary)
     return EXIT_OK if result.ok else EXIT_UNTRUSTED
 
 
@@ -889,9 +889,9 @@ def cmd_calibrate_camera(args: argparse.Namespace) -> int:
     progress.done()
     if args.json:
         _write_json(cc.to_json(), args.json, inputs)
+    _say(args, cc.summary)  # before the model: a model refused (an estimate that breaks it) has its report
     if args.write_model:
         cc.result.write_model(args.write_model)
-    _say(args, cc.summary)
     return EXIT_OK if cc.ok else EXIT_UNTRUSTED
 
 

@@ -163,6 +163,11 @@ def test_solve_refuses_to_write_a_model_its_estimate_makes_invalid(tmp_path):
     assert f"not writing {out}: camera 'eye': fx must be positive, got -685.1" in result.stderr
     assert "(the estimate cam.f = -685.1" in result.stderr and "Traceback" not in result.stderr
     assert not out.exists()
+    # the report comes first: what the fit found, and that the estimate breaks the model
+    result = run("solve", model, clicks, "--estimate", "cam.f", "lever.angle", "--restarts", "64",
+                 "--accept-poor-fit", "--write-model", out)  # fmt: skip
+    assert result.returncode == 2 and not out.exists() and f"not writing {out}" in result.stderr
+    assert "the estimate breaks the model: " in result.stdout and "verdict: NOT trustworthy" in result.stdout
 
 
 def test_an_estimate_that_breaks_the_model_is_not_trustworthy_even_accepted(tmp_path):
