@@ -509,9 +509,11 @@ def calibrate(
         raise
     analysis.join()
     if solved.best < 0:
+        first, where = _first_nonfinite(problem, x_init)
         raise SolverError(
             "every restart failed: the residuals are not finite at any starting point "
-            "(a point behind a camera? a zero-length axis? values or σ so far apart that r² overflows?)",
+            "(a point behind a camera? a zero-length axis? values or σ so far apart that r² overflows?)" + first,
+            where,
             hint="check the model's nominal values, the search ranges and the measurements' magnitudes",
         )
     x = solved.x_best
@@ -632,6 +634,29 @@ def _load_analysis_programs(problem: Problem, structure: Structure | None, x: np
     thread = threading.Thread(target=load, name="mbcal-analysis-programs", daemon=True)
     thread.start()
     return thread
+
+
+def _first_nonfinite(problem: Problem, x: np.ndarray) -> tuple[str, Any]:
+    """When every restart failed: the measurements whose residual is not finite at the initial
+    values (a value of 1e308 px overflows r²), the first by its id and where the file gives it —
+    the rule that bad input is located — or ("", None) when the residuals there are finite."""
+    try:
+        with np.errstate(all="ignore"):
+            r = np.asarray(problem.residual(x), dtype=float)
+    except Exception:  # the failure the caller reports already; this only adds a location
+        return "", None
+    with np.errstate(over="ignore", invalid="ignore"):
+        bad_rows = np.nonzero(~np.isfinite(r[: problem.size] ** 2))[0]
+    if bad_rows.size == 0:
+        return "", None
+    ms = problem.measurements.measurements
+    bad = list(dict.fromkeys(problem.row_measurement[bad_rows].tolist()))
+    first = ms[bad[0]]
+    return (
+        f"; at the initial values {len(bad)} measurement(s) have a residual that is not finite, the first "
+        f"'{first.id}' (value {np.asarray(first.value).tolist() if first.value is not None else None})",
+        first.where,
+    )
 
 
 def _estimate_breaks_model(problem: Problem, x: np.ndarray) -> str | None:

@@ -202,6 +202,20 @@ def test_an_estimate_that_breaks_the_model_is_not_trustworthy_even_accepted(tmp_
     assert json.loads(result.stdout)["fit"]["invalid_estimate"] is None
 
 
+def test_a_value_so_large_that_its_residual_overflows_is_located(tmp_path):
+    """u = 1e308 px: every restart failed ("the residuals are not finite at any starting point")
+    without a word of which measurement; now the message names it at its file:line:col."""
+    clicks = tmp_path / "huge.csv"
+    clicks.write_text(
+        "id,kind,config,camera,point,u,v,sigma\n"
+        "tip,image_point,default,eye,lever.tip,237.2,61.5,1.0\nhub,image_point,default,eye,lever.hub,1e308,1e308,1.0\n"
+    )
+    result = run("solve", LEVER, clicks, "--estimate", "lever.angle", "--restarts", "4")
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert f"{clicks}:3:" in result.stderr or "huge.csv:3:" in result.stderr, result.stderr
+    assert "every restart failed" in result.stderr and "the first 'hub'" in result.stderr
+
+
 def test_a_model_written_from_an_untrustworthy_fit_says_so_in_its_header(tmp_path):
     # Clicks of a lever 10 cm longer than the model's: the fit cannot be consistent with 1 px.
     data = tmp_path / "long.csv"
