@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -215,6 +216,32 @@ def test_calibrated_model_is_written_without_touching_the_input(room, room_resul
     for name, value in room_result.values.items():
         assert again.param(name).nominal == pytest.approx(value, rel=1e-9, abs=1e-12)
     assert "param room.yaw" in out.read_text() and "override" not in out.read_text()
+
+
+def test_a_model_from_text_is_written_from_its_text_and_a_file_changed_since_is_refused(room_data, tmp_path):
+    """write_model re-read the file at model.path and put the estimates at the places parsed from
+    the text: a comment line added to the text moved room.x's estimate onto room.y's line, with
+    nothing said; a file saved after loading did the same."""
+    text = "# a local copy, one comment line added\n" + (MODELS / "teleexistence.mdl").read_text()
+    text = text.replace("param room.x     = 0 m   in [-10 cm, 10 cm]", "param room.x = 0 m in [-10 cm, 10 cm] bounded")
+    assert "bounded" in text
+    model = mbcal.load_model_text(text, str(MODELS / "teleexistence.mdl"))
+    result = mbcal.calibrate(model, room_data, ["room.x", "room.y"], restarts=2)
+    out = tmp_path / "from_text.mdl"
+    result.write_model(out)
+    again = mbcal.load_model(out)
+    for name, value in result.values.items():
+        assert again.param(name).nominal == pytest.approx(value, rel=1e-9, abs=1e-12), name
+    assert again.param("room.z").nominal == 0.0 and "bounded" in out.read_text()
+    # a model read from a file that is saved again before the write: refused, nothing written
+    shutil.copytree(MODELS, tmp_path / "models")
+    copy = tmp_path / "models" / "teleexistence.mdl"
+    read = mbcal.load_model(copy)
+    result = mbcal.calibrate(read, room_data, ["room.x"], restarts=2)
+    copy.write_text("# edited\n" + copy.read_text())
+    with pytest.raises(OutputError, match="has changed since the model was read"):
+        result.write_model(tmp_path / "late.mdl")
+    assert not (tmp_path / "late.mdl").exists()
 
 
 @pytest.mark.slow

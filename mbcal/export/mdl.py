@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
+import hashlib
 import json
 import os
 from collections.abc import Mapping, Sequence
@@ -143,6 +144,22 @@ def _check_estimate(model: Model, values: Mapping[str, float], path) -> None:
         ) from None
 
 
+def _unchanged_text(model: Model, source: Path, path) -> str:
+    """The model file's text, as it was when the model was read: the estimates go in at the
+    places the parser found their values, so a file saved since (a line added above) would have
+    them land in other parameters' lines, or break the syntax, without a word."""
+    data = source.read_bytes()
+    recorded = dict(model.file_digests).get(model.path)
+    if recorded and hashlib.sha256(data).hexdigest() != recorded:
+        raise OutputError(
+            f"not writing {path}: {model.path} has changed since the model was read from it (the estimates' "
+            "places in it are those of the text read)",
+            SourceSpan(str(model.path), 1, 1),
+            hint="load the model again (and solve again if its parameters changed)",
+        )
+    return source.read_text(encoding="utf-8")
+
+
 def write_calibrated_model(
     model: Model,
     values: Mapping[str, float],
@@ -188,7 +205,7 @@ def write_calibrated_model(
     if not source.is_file():
         raise MbcalError(f"cannot write a calibrated model: the model was not read from a file ({model.path})")
     out = check_output(path, [model.path, *model.files, *model.data_files], overwrite=overwrite)
-    text = source.read_text(encoding="utf-8")
+    text = model.source_text if model.source_text is not None else _unchanged_text(model, source, path)
     lines = text.splitlines(keepends=True)
     edits: list[tuple[int, int, str]] = []
     overrides: list[str] = []

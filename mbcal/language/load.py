@@ -81,7 +81,7 @@ def _checked_text(text: str, path: str) -> Model:
     except RecursionError:
         raise _too_deep(path) from None
     # The text is not in a file the cache could hash: its digest stands for it.
-    return dataclasses.replace(model, text_digest=hashlib.sha256(text.encode("utf-8")).hexdigest())
+    return dataclasses.replace(model, text_digest=hashlib.sha256(text.encode("utf-8")).hexdigest(), source_text=text)
 
 
 def load_urdf(path: str | os.PathLike[str]) -> Model:

@@ -265,6 +265,9 @@ class Model:
     # they are when a problem is built later (one saved in between keyed the program of the old
     # content under the new one's name).
     file_digests: tuple[tuple[str, str], ...] = ()
+    # The text itself when it was not read from a file (load_model_text): a calibrated model is
+    # written from it — the file at ``path`` may say something else (a text edited in memory).
+    source_text: str | None = field(default=None, repr=False, compare=False)
     _index: dict[str, dict[str, int]] = field(default_factory=dict, repr=False)
     _suffixes: dict[str, dict[str, list[str]]] = field(default_factory=dict, repr=False)
 
