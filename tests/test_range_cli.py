@@ -156,6 +156,24 @@ def test_a_scatter_far_below_sigma_is_not_trustworthy():
     assert _scan_fit(1.0 * 100, 100).to_json()["doubts"] == []
 
 
+def test_the_outlier_share_the_verdict_judges_is_that_of_the_points_near_the_model():
+    """84 % of a scan's points beyond the crop distance (what it sees besides the model) printed
+    '84.0 %' outliers beside 'verdict: ok', and a doubt said '50 % of the points are outliers' where
+    the report said 100 %: the report and the doubt now say which share is judged."""
+    import dataclasses
+
+    fit = dataclasses.replace(_scan_fit(1.0 * 100, 100), cropped=500, far=np.ones((500, 3)), total_points=601)
+    assert fit.ok and fit.outlier_fraction == pytest.approx(500 / 601) and fit.near_outlier_fraction == 0.0
+    line = next(ln for ln in fit.text().splitlines() if ln.startswith("inliers:"))
+    assert "500 (83.2 %): 500 beyond the crop distance" in line and "(0.0 % of the points within it" in line
+    assert fit.to_json()["outliers"]["near_fraction"] == 0.0
+    outlier = np.zeros(101, bool)
+    outlier[:51] = True
+    bad = dataclasses.replace(fit, outlier=outlier)
+    assert not bad.ok
+    assert any(d.startswith("50 % of the points near the model (within the crop distance) are outliers") for d in bad.doubts)
+
+
 def test_sigma_takes_a_unit_and_a_plain_number_is_metres(tmp_path, capsys):
     from mbcal.cli import build_parser
 

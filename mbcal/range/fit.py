@@ -278,7 +278,10 @@ class ScanFit:
 
     @property
     def near_outlier_fraction(self) -> float:
-        """The share of outliers among the points within the crop distance."""
+        """The share of outliers among the points within the crop distance: what the verdict
+        judges (half or more: not ok).  The points beyond it are what the scan sees besides the
+        model (the rest of a room around a modelled machine): counted and written out, not held
+        against the fit."""
         return int(self.outlier.sum()) / max(len(self.outlier), 1)
 
     @property
@@ -327,7 +330,10 @@ class ScanFit:
             )
         out += [f"structural misfit of {m.object}" for m in self.structural]
         if not self.near_outlier_fraction < 0.5:
-            out.append(f"{100 * self.near_outlier_fraction:.0f} % of the points are outliers")
+            out.append(
+                f"{100 * self.near_outlier_fraction:.0f} % of the points near the model (within the crop distance) "
+                f"are outliers, farther than {self.outlier_sigma:g}σ from every modelled surface"
+            )
         if self.jumped:
             out.append(
                 f"it contradicts the previous state (χ² {self.prior_chi2:.4g} for {self.prior_dof}, "
@@ -367,7 +373,8 @@ class ScanFit:
         lines.append(
             f"inliers: reduced χ² {self.reduced_chi2:.3g} (dof {self.dof}); outliers (on no modelled surface): "
             f"{self.n_outliers} ({100 * self.outlier_fraction:.1f} %): {self.cropped} beyond the crop distance, "
-            f"{int(self.outlier.sum())} within it but farther than {self.outlier_sigma:g}σ"
+            f"{int(self.outlier.sum())} within it but farther than {self.outlier_sigma:g}σ "
+            f"({100 * self.near_outlier_fraction:.1f} % of the points within it: the verdict's share, under 50 % to be ok)"
         )
         for m in self.structural:
             lines.append("structural misfit: " + m.message(self.outlier_sigma, sig))
@@ -427,6 +434,7 @@ class ScanFit:
                     "fraction": self.outlier_fraction,
                     "cropped": self.cropped,
                     "beyond_sigma": int(self.outlier.sum()),
+                    "near_fraction": self.near_outlier_fraction,
                 },
                 "structural_misfits": [m.object for m in self.structural],
                 "objects": [
