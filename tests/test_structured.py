@@ -3,8 +3,11 @@ deficient blocks named, the automatic structure of a camera calibration."""
 
 from __future__ import annotations
 
+import json
 import sys
+from importlib import resources
 
+import jsonschema
 import numpy as np
 import pytest
 
@@ -46,6 +49,22 @@ def camera20():
     problem = Problem(model, data, default_unknowns(model, data))
     x0 = problem.params.from_dict(initial_values(model, data, problem.params.names))
     return model, data, problem, x0
+
+
+@pytest.fixture(scope="module")
+def camera4():
+    """A 4-view camera calibration analysed densely and from its blocks (forced: a few views)."""
+    model = mbcal.load_model(MODELS / "camera_calibration.mdl")
+    data = synthetic_views(model, 4, seed=3)
+    estimate = default_unknowns(model, data)
+    start = initial_values(model, data, Problem(model, data, estimate).params.names)
+    forced = SolverConfig(structure="structured")
+    dense, ours = (
+        mbcal.calibrate(model, data, estimate, restarts=1, initial=start, analysis=how, suggest=False, config=forced)
+        for how in ("dense", "structured")
+    )
+    assert type(ours.covariance).__name__ == "BlockCovariance"
+    return dense, ours
 
 
 @pytest.fixture(scope="module")
@@ -459,3 +478,18 @@ def test_structured_and_dense_agree_on_the_seeds_arm_with_unknown_neck_angles():
     np.testing.assert_allclose(analysis.shared_std, std[structure.shared.ravel()], rtol=1e-7)
     np.testing.assert_allclose(analysis.block_std, std[structure.blocks], rtol=1e-7)
     assert analysis.rank == problem.params.size == 37
+
+
+def test_a_report_by_blocks_is_valid_against_the_schema(camera4):
+    """The covariance by blocks (`form: "blocks"`, docs/report.md) is one of the schema's forms:
+    every report of a problem analysed from its blocks (beyond ~250 views, or analysis="structured")
+    once failed the schema, which required the n × n matrices."""
+    schema = json.loads((resources.files("mbcal") / "schemas" / "report.schema.json").read_text(encoding="utf-8"))
+    dense, ours = camera4
+    for result in (dense, ours):
+        jsonschema.validate(json.loads(json.dumps(result.to_json())), schema)
+    report = json.loads(json.dumps(ours.to_json()))
+    assert report["covariance"]["form"] == "blocks"
+    del report["covariance"]["shared"]  # the block form is checked, not merely allowed
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate(report, schema)
