@@ -1256,11 +1256,13 @@ class BlockCovariance:
     def _raw(self, I: np.ndarray, J: np.ndarray) -> np.ndarray:
         """Scaled covariance entries for broadcast index arrays I, J (no χ², no SI scales)."""
         I, J = np.broadcast_arrays(I, J)
-        out = np.einsum("...k,kl,...l->...", self._q[I], self._f.Sinv, self._q[J])
+        shape = I.shape
+        I, J = I.ravel(), J.ravel()  # 1-D: einsum of two scalar indices gives a scalar, not an array
+        out = np.einsum("ik,kl,il->i", self._q[I], self._f.Sinv, self._q[J])
         bi, bj = self._block[I], self._block[J]
         same = (bi == bj) & (bi >= 0)
         out[same] += self._f.Uinv[bi[same], self._pos[I][same], self._pos[J][same]]
-        return out
+        return out.reshape(shape)
 
     def _entries(self, I: np.ndarray, J: np.ndarray) -> np.ndarray:
         I, J = np.broadcast_arrays(np.asarray(I, dtype=np.int64), np.asarray(J, dtype=np.int64))

@@ -493,3 +493,19 @@ def test_a_report_by_blocks_is_valid_against_the_schema(camera4):
     del report["covariance"]["shared"]  # the block form is checked, not merely allowed
     with pytest.raises(jsonschema.ValidationError):
         jsonschema.validate(report, schema)
+
+
+def test_scalar_entries_of_the_covariance_by_blocks_are_the_dense_ones(camera4):
+    """cov[i, j] (docs/scale.md) of the covariance and the correlation by blocks: once a TypeError
+    ('numpy.float64' object does not support item assignment) for every pair."""
+    dense, ours = camera4
+    C, R = dense.covariance, dense.correlation
+    n = len(dense.names)
+    shared, block = dense.names.index("cam.fx"), dense.names.index("board.z@view02")
+    std = np.sqrt(np.diag(C))
+    for i, j in [(0, 0), (shared, block), (block, shared), (block, block + 1), (-1, -1), (n - 1, 0)]:
+        c, r = ours.covariance[i, j], ours.correlation[i, j]
+        assert isinstance(c, float) and isinstance(r, float)
+        assert abs(c - C[i, j]) < 1e-9 * std[i] * std[j], (i, j)
+        assert r == pytest.approx(R[i, j], abs=1e-9), (i, j)
+    assert ours.covariance[np.int64(block), np.int64(block)] == pytest.approx(C[block, block], rel=1e-9)
