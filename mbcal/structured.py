@@ -1210,9 +1210,11 @@ class BlockCovariance:
     Entry (i, j) is computed on request from the blocks: U_b⁺ when both lie in block b, plus
     q_iᵀ S⁺ q_j with q = Y_b's row for a block unknown and −e for a shared one; scaled back to SI
     units and by ``chi2_scale``; inf in the rows and columns of unknowns that an unobservable
-    direction moves.  Indexing (``cov[i, j]``, ``cov[np.ix_(a, b)]``), ``diagonal()``, rows and
-    ``np.asarray(cov)`` (which forms the whole matrix: for small problems only) work as for an
-    array; ``correlation()`` is the same for the correlation matrix.
+    direction moves.  Indexing follows NumPy's for an n × n array (``cov[i, j]``, rows, slices,
+    integer or boolean arrays; two index arrays give the entries at their pairs, ``cov[np.ix_(a, b)]``
+    a block; ``...`` and ``None`` are refused), and ``diagonal()`` and ``np.asarray(cov)`` (which
+    forms the whole matrix: for small problems only) work as for an array; ``correlation()`` is the
+    same for the correlation matrix.
     """
 
     def __init__(
@@ -1297,22 +1299,48 @@ class BlockCovariance:
         twin.held = self.held
         return twin
 
-    def __getitem__(self, key: Any) -> Any:
+    _INDEXING = (
+        "a BlockCovariance takes cov[i, j], cov[i] (a row), slices, and integer or boolean arrays, "
+        "each as NumPy indexes an n × n array (two index arrays: the entries at their pairs, "
+        "broadcast together); a block is cov[np.ix_(a, b)]"
+    )
+
+    def _index(self, k: Any) -> tuple[np.ndarray, bool]:
+        """One axis's index as integer positions, and whether it was a slice."""
         n = self.shape[0]
-        if not isinstance(key, tuple):
-            key = (key, slice(None))
-        a, b = key
-        if isinstance(a, slice):
-            a = np.arange(n)[a]
-        if isinstance(b, slice):
-            b = np.arange(n)[b]
-        a, b = np.asarray(a), np.asarray(b)
+        if isinstance(k, slice):
+            return np.arange(n)[k], True
+        if k is None or k is Ellipsis or isinstance(k, (bool, np.bool_)):
+            raise IndexError(f"{self._INDEXING}; got {k!r}")
+        a = np.asarray(k)
         if a.dtype == bool:
-            a = np.nonzero(a)[0]
-        if b.dtype == bool:
-            b = np.nonzero(b)[0]
-        if a.ndim == 1 and b.ndim == 1:  # cov[a, b] of two lists: the outer block, as np.ix_ would
-            return self._entries(a[:, None], b[None, :])
+            if a.shape != (n,):
+                raise IndexError(f"a boolean index must have shape ({n},), got {a.shape}")
+            return np.nonzero(a)[0], False
+        if a.dtype.kind not in "iu" and not (a.size == 0 and a.dtype.kind == "f"):
+            raise IndexError(f"{self._INDEXING}; got an index of type {a.dtype}")
+        a = a.astype(np.int64)
+        if a.size and (a.min() < -n or a.max() >= n):
+            raise IndexError(f"index out of range for {n} unknowns")
+        return a, False
+
+    def __getitem__(self, key: Any) -> Any:
+        """Entries as NumPy gives them from the n × n array (a scalar for two integers, a row for
+        one; two index arrays broadcast to pointwise pairs, not the outer block: ``np.ix_``)."""
+        if not isinstance(key, tuple):
+            key = (key,)
+        if any(k is Ellipsis or k is None for k in key):
+            raise IndexError(f"{self._INDEXING}; got {key!r}")
+        if len(key) > 2:
+            raise IndexError(f"too many indices for an n × n covariance: {len(key)}")
+        key = (*key, slice(None), slice(None))[:2]
+        (a, a_slice), (b, b_slice) = self._index(key[0]), self._index(key[1])
+        if a_slice and b_slice:
+            a, b = a[:, None], b[None, :]
+        elif a_slice:  # cov[:, b]: the rows a, then b's shape
+            a = a.reshape((-1,) + (1,) * b.ndim)
+        elif b_slice:  # cov[a, :]: a's shape, then the columns b
+            a = a[..., None]
         out = self._entries(a, b)
         return out if out.ndim else float(out)
 
@@ -1372,7 +1400,7 @@ class BlockCovariance:
         condition = float(np.sqrt(big[-1] / small)) if big[-1] > 0 and small > 0 else 1.0
         if len(u) <= WEAK_EXACT:
             width = 2.0 * self.scales[u]
-            Cs = self[u, u] / np.outer(width, width)
+            Cs = self[np.ix_(u, u)] / np.outer(width, width)
             lam, V = np.linalg.eigh((Cs + Cs.T) / 2)
             groups = [(u, lam, V)]
         else:

@@ -509,3 +509,57 @@ def test_scalar_entries_of_the_covariance_by_blocks_are_the_dense_ones(camera4):
         assert abs(c - C[i, j]) < 1e-9 * std[i] * std[j], (i, j)
         assert r == pytest.approx(R[i, j], abs=1e-9), (i, j)
     assert ours.covariance[np.int64(block), np.int64(block)] == pytest.approx(C[block, block], rel=1e-9)
+
+
+def test_the_covariance_by_blocks_indexes_as_numpy_does(camera4):
+    """The covariance by blocks gives what the dense ndarray gives for the same index, so code
+    keeps its meaning when a problem grows past the by-blocks threshold: two index lists are the
+    entries at their pairs (once the outer block), np.ix_ the block; `...` and None are refused."""
+    dense, ours = camera4
+    C, R = dense.covariance, dense.correlation
+    n = len(dense.names)
+    std = np.sqrt(np.diag(C))
+    mask = np.zeros(n, dtype=bool)
+    mask[[1, 7, 20]] = True
+    a, b = np.array([0, 5, 20, -1]), np.array([3, 5, 11, 0])
+    for key in [
+        ([0, 1], [0, 1]),
+        (a, b),
+        (a[:, None], b[None, :]),
+        np.ix_(a, b),
+        np.ix_(mask, mask),
+        ([[0, 1], [2, 3]], [4, 5]),
+        (3, [0, 2, 9]),
+        ([0, 2, 9], 3),
+        (slice(2, 9, 3), [1, 4]),
+        ([1, 4], slice(None, 5)),
+        (np.array([[0, 1], [2, 3]]), slice(4, 6)),
+        (slice(None), 2),
+        (2, slice(None)),
+        (mask, [0, 1, 2]),
+        (slice(1, 4), slice(None, None, -7)),
+        ([],),
+        [0, 2],
+        4,
+        slice(3, 5),
+        (),
+    ]:
+        want = C[key]
+        got = ours.covariance[key]
+        assert np.shape(got) == np.shape(want), key
+        I, J = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+        norm = (std[I] * std[J])[key]  # the same entries' σ_i σ_j
+        assert np.all(np.abs(got - want) <= 1e-9 * norm), key
+        np.testing.assert_allclose(ours.correlation[key], R[key], atol=1e-9, err_msg=str(key))
+    refused = [
+        ((Ellipsis, 0), r"np\.ix_\(a, b\)"),
+        (Ellipsis, r"np\.ix_\(a, b\)"),
+        ((0, None), r"np\.ix_\(a, b\)"),
+        ((0.5, 1), r"np\.ix_\(a, b\)"),
+        ((0, 1, 2), "too many indices"),
+        ((np.ones(n - 1, dtype=bool), 0), "boolean index"),
+        ((n, 0), "out of range"),
+    ]
+    for key, message in refused:
+        with pytest.raises(IndexError, match=message):
+            ours.covariance[key]
