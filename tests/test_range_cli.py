@@ -171,7 +171,8 @@ def test_the_outlier_share_the_verdict_judges_is_that_of_the_points_near_the_mod
     outlier[:51] = True
     bad = dataclasses.replace(fit, outlier=outlier)
     assert not bad.ok
-    assert any(d.startswith("50 % of the points near the model (within the crop distance) are outliers") for d in bad.doubts)
+    said = "50 % of the points near the model (within the crop distance) are outliers"
+    assert any(d.startswith(said) for d in bad.doubts)
 
 
 def test_sigma_takes_a_unit_and_a_plain_number_is_metres(tmp_path, capsys):

@@ -374,7 +374,8 @@ class ScanFit:
             f"inliers: reduced χ² {self.reduced_chi2:.3g} (dof {self.dof}); outliers (on no modelled surface): "
             f"{self.n_outliers} ({100 * self.outlier_fraction:.1f} %): {self.cropped} beyond the crop distance, "
             f"{int(self.outlier.sum())} within it but farther than {self.outlier_sigma:g}σ "
-            f"({100 * self.near_outlier_fraction:.1f} % of the points within it: the verdict's share, under 50 % to be ok)"
+            f"({100 * self.near_outlier_fraction:.1f} % of the points within it: the verdict's share, "
+            "under 50 % to be ok)"
         )
         for m in self.structural:
             lines.append("structural misfit: " + m.message(self.outlier_sigma, sig))
