@@ -39,6 +39,7 @@ from mbcal.errors import KinematicsError
 from mbcal.kinematics import Kinematics, float64, pseudo_inverse
 from mbcal.language.model import Model
 from mbcal.modeling import modeler, parameter_vector
+from mbcal.text import fmt
 
 Array = Any
 
@@ -553,17 +554,35 @@ def simulate(
     grasp : Grasp, optional
         When the hand closes and how it holds; None: it never closes.
     damping : float
-        λ of J* (0: the seed's Jᵀ(JJᵀ)⁻¹).
+        λ of J* = Jᵀ(JJᵀ + λ²I)⁻¹ (0: the seed's Jᵀ(JJᵀ)⁻¹, which is not finite at a singular
+        configuration of the master — give λ > 0, e.g. 1e-2, for a trajectory through or near one).
 
     Returns
     -------
     ControlRun
+
+    Raises
+    ------
+    KinematicsError
+        The master's trajectory is not finite; or, at some step, J* is not finite (the master's
+        configuration is singular and ``damping`` is 0 or too small) or the simulated state is
+        not finite (diverged): the message names the first such step, its time and the master's
+        joints there.  A run never comes back with NaN joints and a force that reads 0 N.
     """
     theta_master = np.asarray(theta_master, dtype=float)
     if theta_master.ndim != 2 or theta_master.shape[1] != kin.n:
         raise KinematicsError(f"the master trajectory must be (T, {kin.n}), got {theta_master.shape}")
     if not dt > 0:
         raise KinematicsError(f"the time step must be positive, got {dt}")
+    if not (math.isfinite(damping) and damping >= 0):
+        raise KinematicsError(f"the damping λ of J* must be finite and ≥ 0, got {damping}")
+    unfinite = ~np.all(np.isfinite(theta_master), axis=1)
+    if unfinite.any():
+        k = int(np.argmax(unfinite))
+        raise KinematicsError(
+            f"the master trajectory is not finite at step {k} (t = {fmt(k * dt)} s): "
+            + _joints_text(kin, theta_master[k])
+        )
     T = theta_master.shape[0]
     grasp = grasp or Grasp(step=-1)
     lever = environment.lever
@@ -590,7 +609,9 @@ def simulate(
         x0 = kin.forward_single(jnp.asarray(theta_master[0])).position
         state0 = (jnp.zeros(3), jnp.zeros(3), jnp.float64(phi0), jnp.float64(0.0), jnp.float64(-1.0), x0)
         rec = program(state0, jnp.asarray(theta_master), jax.tree_util.tree_map(jnp.asarray, settings))
-        theta_s, x_m, x_s, e, F, f_contact, g, held, phi = (np.asarray(r) for r in rec)
+        theta_s, x_m, x_s, e, F, f_contact, g, held, phi, j_finite = (np.asarray(r) for r in rec)
+    state = (theta_s, x_s, e, F, phi if lever is not None else None)
+    _check_finite(kin, theta_master, dt, float(damping), j_finite, state)
     # The lever's angle recorded is the one after the step; shift so row k is the angle at step k.
     angle = np.concatenate([[phi0], phi[:-1]]) if lever is not None else np.full(T, np.nan)
     return ControlRun(
@@ -607,6 +628,63 @@ def simulate(
         grasped=held.astype(bool),
         impedance=use_impedance,
         grasp_step=grasp_step,
+    )
+
+
+def _joints_text(kin: Kinematics, theta: np.ndarray) -> str:
+    """The master's joints as 'name value unit, ...' (angles in degrees)."""
+    parts = []
+    for k, name in enumerate(kin.joints):
+        unit = kin._unit(k)
+        value = float(theta[k])
+        if not math.isfinite(value):
+            parts.append(f"{name} {value}")
+            continue
+        parts.append(f"{name} {fmt(kin._show(k, value), 6)}{(' ' + unit) if unit else ''}")
+    return "θ_m = " + ", ".join(parts)
+
+
+def _check_finite(
+    kin: Kinematics,
+    theta_master: np.ndarray,
+    dt: float,
+    damping: float,
+    j_finite: np.ndarray,
+    records: tuple[np.ndarray | None, ...],
+) -> None:
+    """Refuse a run whose J* or state is not finite at some step, naming the first such step.
+
+    A NaN hand touches nothing, so the force would read 0 N although the master pushes into a
+    wall: a wrong run that looks right.  Checked on the recorded arrays after the compiled loop."""
+    state_finite = np.ones(len(j_finite), dtype=bool)
+    for r in records:
+        if r is not None:
+            state_finite &= np.all(np.isfinite(r.reshape(len(r), -1)), axis=1)
+    bad = ~(j_finite.astype(bool) & state_finite)
+    if not bad.any():
+        return
+    k = int(np.argmax(bad))
+    where = f"step {k} (t = {fmt(k * dt)} s), {_joints_text(kin, theta_master[k])}"
+    if not j_finite[k]:
+        gram = "JᵀJ" if kin.n < 3 else "JJᵀ"
+        formula = "(JᵀJ)⁻¹Jᵀ" if kin.n < 3 else "Jᵀ(JJᵀ)⁻¹"
+        if damping > 0:
+            formula = ("(JᵀJ + λ²I)⁻¹Jᵀ" if kin.n < 3 else "Jᵀ(JJᵀ + λ²I)⁻¹") + f" with λ = {fmt(damping)}"
+        raise KinematicsError(
+            f"impedance control: J* = {formula} is not finite at {where}: the master's configuration is "
+            f"singular ({gram} cannot be inverted), so θ_s = θ_m + J* e, the slave's hand and the force on "
+            "it are undefined from there on",
+            hint=(
+                "give simulate a damping λ > 0 such as damping=1e-2, which keeps J* = Jᵀ(JJᵀ + λ²I)⁻¹ finite"
+                if damping == 0
+                else f"give a larger damping than λ = {fmt(damping)}, such as damping=1e-2"
+            )
+            + ", or start the master away from the singularity",
+        )
+    raise KinematicsError(
+        f"the simulation is not finite from {where}: the slave's joints, hand, e, force or the lever's angle "
+        "overflowed",
+        hint="a time step too large for the stiffnesses makes the explicit integration diverge: try a smaller dt",
     )
 
 
@@ -650,8 +728,11 @@ def _simulation(kin: Kinematics, environment: Environment, use_impedance: bool) 
             theta_m, k = inputs
             out_m = kin.forward_single(theta_m)
             if use_impedance:
-                theta_s = theta_m + pseudo_inverse(out_m.jacobian[:3], c["damping"]) @ e
+                J_star = pseudo_inverse(out_m.jacobian[:3], c["damping"])
+                j_finite = jnp.all(jnp.isfinite(J_star))
+                theta_s = theta_m + J_star @ e
             else:
+                j_finite = jnp.asarray(True)
                 theta_s = theta_m
             x_s = kin.forward_single(theta_s).position
             v_s = jnp.where(k > 0, (x_s - x_prev) / dt, 0.0)
@@ -681,7 +762,7 @@ def _simulation(kin: Kinematics, environment: Environment, use_impedance: bool) 
                 )
                 dphi = dphi + dt * torque / lever.inertia
                 phi = phi + dt * dphi
-            record = (theta_s, out_m.position, x_s, e_now, F, f_contact, g, held, phi)
+            record = (theta_s, out_m.position, x_s, e_now, F, f_contact, g, held, phi, j_finite)
             return (e, de, phi, dphi, closed_at, x_s), record
 
         steps = jnp.arange(theta_master.shape[0])

@@ -91,6 +91,54 @@ def test_against_a_wall_impedance_yields_and_position_control_presses(arm, push)
     assert 20.0 < soft.peak_force < 100.0 < stiff.peak_force
 
 
+def _floor_under_straight_arm(arm, depth=0.01):
+    """The arm hanging straight (arm7's nominal pose: singular, J loses a row) with a floor the
+    master's hand is ``depth`` into."""
+    hand = np.asarray(arm.position(np.zeros(7)))
+    floor = HalfSpace(point=(0.0, 0.0, hand[2] - 0.04 + depth), normal=(0.0, 0.0, 1.0))
+    return Environment(surfaces=(floor,))
+
+
+def test_a_singular_master_without_damping_is_refused_not_nan(arm):
+    # J* = Jᵀ(JJᵀ)⁻¹ is NaN there: the slave's joints and hand were NaN, the NaN hand touched
+    # nothing and the force read 0 N although the master pushes 1 cm into the floor.
+    floor = _floor_under_straight_arm(arm)
+    for env in (floor, Environment()):
+        with pytest.raises(KinematicsError, match=r"J\* = Jᵀ\(JJᵀ\)⁻¹ is not finite at step 0 \(t = 0 s\)") as info:
+            simulate(arm, np.zeros((200, 7)), env, impedance=Impedance())
+        text = str(info.value)
+        assert "arm.q1 0 deg" in text and "arm.q7 0 deg" in text and "singular" in text
+        assert "damping=1e-2" in text and "away from the singularity" in text
+    # Reaching the singularity later: the first step where J* is not finite is named.
+    theta = np.linspace(np.radians([0, 0, 0, -30, 0, 0, 0]), np.zeros(7), 50)
+    with pytest.raises(KinematicsError, match=r"step 49 \(t = 0\.049 s\)"):
+        simulate(arm, theta, floor, impedance=Impedance())
+    # A damping too small to help says so.
+    with pytest.raises(KinematicsError, match="larger damping than λ = 1e-09"):
+        simulate(arm, np.zeros((20, 7)), floor, impedance=Impedance(), damping=1e-9)
+    # Position control does not use J*: it runs and presses with the floor's stiffness.
+    assert simulate(arm, np.zeros((20, 7)), floor).force[-1, 2] == pytest.approx(200.0)
+
+
+def test_a_singular_master_with_damping_runs_and_feels_the_floor(arm):
+    run = simulate(arm, np.zeros((200, 7)), _floor_under_straight_arm(arm), impedance=Impedance(), damping=1e-2)
+    for a in (run.theta_slave, run.x_slave, run.e, run.force):
+        assert np.all(np.isfinite(a))
+    # The straight arm cannot give way along itself (J has no z row to damp): the hand stays 1 cm
+    # in and the floor pushes back with its 20,000 N/m, as under position control.
+    assert run.force[-1, 2] == pytest.approx(200.0, rel=1e-3) and run.peak_force > 100.0
+    assert run.e[-1, 2] > 0.0
+
+
+def test_the_master_trajectory_and_damping_are_checked(arm):
+    theta = np.zeros((10, 7))
+    theta[3, 2] = np.nan
+    with pytest.raises(KinematicsError, match=r"master trajectory is not finite at step 3 .*arm\.q3 nan"):
+        simulate(arm, theta, Environment(), impedance=Impedance(), damping=1e-2)
+    with pytest.raises(KinematicsError, match="damping λ of J\\* must be finite and ≥ 0"):
+        simulate(arm, np.zeros((10, 7)), Environment(), impedance=Impedance(), damping=-1.0)
+
+
 def test_the_lever_follows_the_model():
     model = mbcal.load_model(MODELS / "teleexistence.mdl")
     for values in ({}, DEMO_TRUTH):
