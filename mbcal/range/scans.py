@@ -91,15 +91,22 @@ class Scan:
 
     def downsampled(self, size: float) -> np.ndarray:
         """The points kept for a voxel size (m): a depth image's on a pixel grid whose step is the
-        voxel size at the median depth (which pixel is kept does not depend on its noise); a
-        cloud's by :func:`voxel_downsample`."""
+        voxel size at the median depth; a cloud's a random subset (seeded) as large as the number
+        of cubes of side ``size`` its points occupy.  Which point is kept never depends on its
+        noise: one point per cube (:func:`voxel_downsample`), whose membership the noisy position
+        decides, biased a cloud's fit of the room by 4–5 σ in yaw with a verdict of ok (0.3 σ
+        with every point)."""
         if size <= 0:
             return self.points
         if self.pixels is not None and self.focal > 0 and len(self.points):
             k = max(1, int(round(size * self.focal / float(np.median(self.points[:, 2])))))
             keep = (self.pixels[:, 0] % k == 0) & (self.pixels[:, 1] % k == 0)
             return self.points[keep]
-        return voxel_downsample(self.points, size)
+        count = len(voxel_downsample(self.points, size))
+        if count >= len(self.points):
+            return self.points
+        chosen = np.random.default_rng(0).choice(len(self.points), count, replace=False)
+        return self.points[np.sort(chosen)]
 
     def sigmas(self, points: np.ndarray | None = None) -> np.ndarray:
         """σ (m) of each point (of ``points``, default this scan's, in the sensor frame)."""
