@@ -175,6 +175,35 @@ def test_the_outlier_share_the_verdict_judges_is_that_of_the_points_near_the_mod
     assert any(d.startswith(said) for d in bad.doubts)
 
 
+def test_every_point_of_the_scans_is_accounted_for(tmp_path):
+    """Six depth images gave 'scan fit: 60000 points used of 145552 (0 cropped …)': the 85,552
+    above the cap went unsaid, and the outlier share mixed the subset with all the cropped points."""
+    import dataclasses
+
+    from mbcal.range.fit import FitOptions, fit_scans
+    from mbcal.range.scans import Scan
+    from mbcal.range.simulate import add_depth_noise, render_depth
+
+    model = mbcal.load_model(ROOM)
+    write_depth_png(tmp_path / "depth.png", add_depth_noise(render_depth(model, TRUTH), 1e-3, 1e-3, seed=2))
+    world = scan_world_points(model, load_scan(tmp_path / "depth.png", model))
+    far = 5.0 + np.arange(40.0)[:, None] * np.ones(3)  # 40 points nowhere near the model, 1.7 m apart
+    cloud = Scan(np.vstack([world, far]))
+    fit = fit_scans(model, [cloud], ["room.*"], FitOptions(max_points=3000, voxel=0.02))
+    used, cropped, thinned, capped = len(fit.points), fit.cropped, fit.thinned, fit.capped
+    assert 0 < cropped <= 40 and thinned > 0 and capped > 0 and used == 3000
+    assert used + cropped + thinned + capped == fit.total_points == len(cloud)
+    first = fit.text().splitlines()[0]
+    said = f"({thinned} left out by the down-sampling, {cropped} cropped as far from the model, {capped} left out at"
+    assert said in first
+    report = fit.to_json()
+    assert (report["thinned"], report["capped"], report["cropped"]) == (thinned, capped, cropped)
+    share = fit.outlier_fraction  # the cropped points, and the near share standing for the capped points too
+    assert share == pytest.approx((cropped + fit.near_outlier_fraction * (used + capped)) / (used + capped + cropped))
+    same = dataclasses.replace(fit, capped=0)
+    assert same.outlier_fraction == pytest.approx(same.n_outliers / (used + cropped))
+
+
 def test_sigma_takes_a_unit_and_a_plain_number_is_metres(tmp_path, capsys):
     from mbcal.cli import build_parser
 

@@ -229,6 +229,12 @@ class ScanFit:
     nonfinite: int = 0
     """Points of the scans left out as read because a coordinate is not a finite number (NaN, inf:
     an organised cloud's missing returns, a broken export); not in ``total_points``."""
+    thinned: int = 0
+    """Points of the scans left out by the down-sampling (``voxel``)."""
+    capped: int = 0
+    """Points within the crop distance left out at random above ``FitOptions.max_points``: used,
+    thinned, cropped and capped add up to ``total_points``; the outliers are counted among the
+    points used and, by :attr:`near_outlier_fraction`, stand for the capped ones too."""
     determined_by_scans: bool = True
     """Whether the scans (and the model's σ priors) determine every unknown without the previous
     posterior: an estimate that contradicts that posterior is trusted only then (a room that was
@@ -274,7 +280,10 @@ class ScanFit:
 
     @property
     def outlier_fraction(self) -> float:
-        return self.n_outliers / max(len(self.outlier) + self.cropped, 1)
+        """Outliers among the points after down-sampling: the cropped ones and, among those within
+        the crop distance (the capped ones too), :attr:`near_outlier_fraction` of them."""
+        near = len(self.outlier) + self.capped
+        return (self.cropped + self.near_outlier_fraction * near) / max(near + self.cropped, 1)
 
     @property
     def near_outlier_fraction(self) -> float:
@@ -351,7 +360,9 @@ class ScanFit:
         sig = float(np.median(self.sigma)) if len(self.sigma) else 0.0
         lines = [
             f"scan fit: {len(self.points)} points used of {self.total_points} "
-            f"({self.cropped} cropped as far from the model), σ {1000 * sig:.3g} mm",
+            f"({self.thinned} left out by the down-sampling, {self.cropped} cropped as far from the model"
+            + (f", {self.capped} left out at random above the cap of {len(self.points)} points" if self.capped else "")
+            + f"), σ {1000 * sig:.3g} mm",
         ]
         if self.nonfinite:
             lines.append(
@@ -429,6 +440,8 @@ class ScanFit:
                 "points": len(self.points),
                 "total_points": self.total_points,
                 "cropped": self.cropped,
+                "thinned": self.thinned,
+                "capped": self.capped,
                 "nonfinite": self.nonfinite,
                 "outliers": {
                     "count": self.n_outliers,
@@ -858,7 +871,7 @@ def fit_scans(
         raise SolverError("nothing to estimate: name the unknowns (--estimate NAME|GLOB)")
     pair_keys: list[tuple[int, int]] = []
     pts_list, pair_list, sig_list = [], [], []
-    total = 0
+    total = kept_total = 0  # the scans' points, and those the down-sampling kept
     for s in scans:
         f = -1 if s.frame == "world" else model.frame_index(s.frame)
         key = (configs.index(s.config), f)
@@ -866,6 +879,7 @@ def fit_scans(
             pair_keys.append(key)
         p = np.asarray(s.downsampled(o.voxel), dtype=float)
         total += len(s)
+        kept_total += len(p)
         pts_list.append(p)
         pair_list.append(np.full(len(p), pair_keys.index(key), dtype=np.int64))
         sig_list.append(s.sigmas(p))
@@ -906,7 +920,8 @@ def fit_scans(
             f"only {len(pts)} scan points lie within {o.crop:g} m of the model at the start",
             hint="is the scan in the right frame? try a larger --crop, or a global alignment (--coarse always)",
         )
-    if len(pts) > o.max_points:
+    capped = max(len(pts) - o.max_points, 0)
+    if capped:
         sel = np.sort(np.random.default_rng(o.seed).choice(len(pts), o.max_points, replace=False))
         pts, pair, sig, D = pts[sel], pair[sel], sig[sel], D[sel]
     cloud = _Points(eng, known, pts, pair)
@@ -1026,6 +1041,8 @@ def fit_scans(
         sigma=sig,
         outlier=outlier,
         cropped=cropped,
+        thinned=total - kept_total,
+        capped=capped,
         far=_world(eng, xb, known, far_pts, far_pair) if len(far_pts) else np.zeros((0, 3)),
         total_points=total,
         nonfinite=sum(s.nonfinite for s in scans),
