@@ -175,6 +175,25 @@ def test_the_outlier_share_the_verdict_judges_is_that_of_the_points_near_the_mod
     assert any(d.startswith(said) for d in bad.doubts)
 
 
+def test_a_scan_nearly_all_beyond_the_crop_distance_gets_a_hint():
+    """A cloud in millimetres read as metres: 12 of 24,261 points lay near the model's infinite
+    planes, the fit was unobservable and nothing suggested units or frame."""
+    import dataclasses
+    from importlib import resources
+
+    import jsonschema
+
+    schema = json.loads((resources.files("mbcal") / "schemas" / "scan_fit.schema.json").read_text())
+    base = _scan_fit(1.0 * 100, 100)  # 101 points near the model
+    lost = dataclasses.replace(base, cropped=24249, far=np.ones((24249, 3)), total_points=24350)
+    assert "note: 99.59 % of the points lay farther than the crop distance" in lost.text()
+    assert "in metres" in lost.to_json()["hint"]
+    jsonschema.validate(lost.to_json(), schema)
+    fine = dataclasses.replace(base, cropped=800, far=np.ones((800, 3)), total_points=901)  # 89 %: a room around
+    assert "crop distance from every" not in fine.text() and fine.to_json()["hint"] is None
+    jsonschema.validate(fine.to_json(), schema)
+
+
 def test_every_point_of_the_scans_is_accounted_for(tmp_path):
     """Six depth images gave 'scan fit: 60000 points used of 145552 (0 cropped …)': the 85,552
     above the cap went unsaid, and the outlier share mixed the subset with all the cropped points."""

@@ -294,6 +294,21 @@ class ScanFit:
         return int(self.outlier.sum()) / max(len(self.outlier), 1)
 
     @property
+    def mostly_cropped(self) -> str:
+        """A hint when nearly every point (≥ 90 %) lay beyond the crop distance at the start —
+        what a scan in millimetres read as metres (1000× the room: a few points near the model's
+        infinite planes remain), in another frame or of another place gives — else ""."""
+        near = len(self.outlier) + self.capped
+        if not self.cropped >= 9 * max(near, 1):
+            return ""
+        share = 100 * self.cropped / (self.cropped + near)
+        return (
+            f"note: {share:.4g} % of the points lay farther than the crop distance from every modelled surface at "
+            "the start: is the scan of this model, in its frame, and in metres (a scan in millimetres read as metres "
+            "is 1000× the size)?"
+        )
+
+    @property
     def outlier_points(self) -> np.ndarray:
         return np.vstack([self.points[self.outlier], self.far])
 
@@ -369,6 +384,8 @@ class ScanFit:
                 f"{self.nonfinite} point(s) of the scans left out as read: "
                 "a coordinate is not a finite number (NaN, inf)"
             )
+        if self.mostly_cropped:
+            lines.append(self.mostly_cropped)
         if self.coarse is not None:
             t = self.coarse[:3, 3]
             ang = np.degrees(np.arccos(np.clip((np.trace(self.coarse[:3, :3]) - 1) / 2, -1, 1)))
@@ -463,6 +480,7 @@ class ScanFit:
                 "converged": self.converged,
                 "ok": self.ok,
                 "doubts": self.doubts,
+                "hint": self.mostly_cropped or None,
                 "elapsed": self.elapsed,
             }
         )
