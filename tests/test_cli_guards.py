@@ -141,9 +141,9 @@ def test_joint_limits_the_wrong_way_round_are_an_error_at_the_lower_limit():
     assert (info.value.span.line, info.value.span.column) == (3, 32)
 
 
-def test_solve_refuses_to_write_a_model_its_estimate_makes_invalid(tmp_path):
-    """With f searched over [-1000, 1000] the fit chose the mirror camera, f = -685; --write-model
-    wrote 'param cam.f = -685.147...', a model 'mbcal check' refuses (fx must be positive)."""
+def _mirror_camera(tmp_path):
+    """The lever seen by a camera whose focal length is searched over [-1000, 1000] px, and two
+    clicks: the fit ends at the mirror camera, f = -685 px (as good as +685)."""
     model = tmp_path / "levf.mdl"
     model.write_text(
         (MODELS / "lever.mdl")
@@ -156,6 +156,13 @@ def test_solve_refuses_to_write_a_model_its_estimate_makes_invalid(tmp_path):
         "id,kind,config,camera,point,u,v,sigma\n"
         "hub,image_point,default,eye,lever.hub,334.3,226.8,1.0\ntip,image_point,default,eye,lever.tip,237.2,61.5,1.0\n"
     )
+    return model, clicks
+
+
+def test_solve_refuses_to_write_a_model_its_estimate_makes_invalid(tmp_path):
+    """With f searched over [-1000, 1000] the fit chose the mirror camera, f = -685; --write-model
+    wrote 'param cam.f = -685.147...', a model 'mbcal check' refuses (fx must be positive)."""
+    model, clicks = _mirror_camera(tmp_path)
     out = tmp_path / "levf_cal.mdl"
     result = run("solve", model, clicks, "--estimate", "cam.f", "lever.angle", "--restarts", "64",
                  "--accept-poor-fit", "-q", "--write-model", out)  # fmt: skip
@@ -173,18 +180,7 @@ def test_solve_refuses_to_write_a_model_its_estimate_makes_invalid(tmp_path):
 def test_an_estimate_that_breaks_the_model_is_not_trustworthy_even_accepted(tmp_path):
     """The same mirror fit without --write-model: it exited 0 with --accept-poor-fit, reporting
     f = -685 px as an estimate; now the verdict names the rule it breaks, where, and exit 1."""
-    model = tmp_path / "levf.mdl"
-    model.write_text(
-        (MODELS / "lever.mdl")
-        .read_text()
-        .replace("camera eye(width = 669, height = 453, f = 600)", "param cam.f = 600 in [-1000, 1000]\n"
-                 "camera eye(width = 669, height = 453, f = cam.f)")
-    )  # fmt: skip
-    clicks = tmp_path / "ok.csv"
-    clicks.write_text(
-        "id,kind,config,camera,point,u,v,sigma\n"
-        "hub,image_point,default,eye,lever.hub,334.3,226.8,1.0\ntip,image_point,default,eye,lever.tip,237.2,61.5,1.0\n"
-    )
+    model, clicks = _mirror_camera(tmp_path)
     result = run("solve", model, clicks, "--estimate", "cam.f", "lever.angle", "--restarts", "64",
                  "--accept-poor-fit", "--json", "-")  # fmt: skip
     assert result.returncode == 1, result.stderr
