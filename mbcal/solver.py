@@ -768,8 +768,19 @@ def _compiled(
     local: LocalParameterisation | None = None if wrapped is None else wrapped.obj
 
     def residuals(x0s, args):
-        # The number of residuals: given, or from a cheap abstract trace.
-        return size if size is not None else jax.eval_shape(fun, x0s[0], *args).shape[0]
+        # The number of residuals: given, or from a cheap abstract trace (a caller's own function:
+        # what it returns is checked, not left to fail inside the program with JAX's words)
+        if size is not None:
+            return size
+        out = jax.eval_shape(fun, x0s[0], *args)
+        shape, dtype = getattr(out, "shape", None), getattr(out, "dtype", None)
+        if shape is None or len(shape) != 1 or not jnp.issubdtype(dtype, jnp.floating):
+            raise SolverError(
+                "the residual function must return a 1-D array of real numbers (m,), got "
+                + (f"shape {tuple(shape)} of {dtype}" if shape is not None else type(out).__name__),
+                hint="return jnp.ravel(r) for an array of residuals; split a complex one into real and imaginary parts",
+            )
+        return shape[0]
 
     if not bounded:
 

@@ -218,3 +218,19 @@ def test_mbcal_programs_take_xla_options_only_for_themselves(monkeypatch):
         ours_hlo = jit(lambda y: jnp.sum(y * y)).lower(v).compile().as_text()
         plain_hlo = jax.jit(lambda y: jnp.sum(y * y)).lower(v).compile().as_text()
         assert "reduce-window" in plain_hlo and "reduce-window" not in ours_hlo
+
+
+def test_a_residual_that_is_not_a_real_vector_is_refused_by_name():
+    """A scalar, 2-D, complex or boolean residual failed inside JAX ("tuple index out of range",
+    "Cannot concatenate arrays with different numbers of dimensions", "lax.select requires ...")."""
+    cases = [
+        (lambda b: jnp.sum(b**2), "got shape () of float64"),
+        (lambda b: jnp.reshape(b, (1, 2)) - 1.0, "got shape (1, 2) of float64"),
+        (lambda b: (b - 1.0) * (1 + 1j), "got shape (2,) of complex128"),
+        (lambda b: b > 0, "got shape (2,) of bool"),
+    ]
+    for fun, said in cases:
+        with pytest.raises(SolverError, match="must return a 1-D array of real numbers") as info:
+            least_squares(fun, np.array([0.5, 0.2]))
+        assert said in str(info.value)
+    np.testing.assert_allclose(least_squares(lambda b: b - 1.0, np.array([0.5, 0.2])).x_best, [1.0, 1.0])
